@@ -1,0 +1,239 @@
+"""The light runtime segmentor: an exported roboseg ONNX model behind numpy in, numpy out.
+
+Needs only numpy, OpenCV and onnxruntime (no torch, Lightning, smp, kornia or Hydra), so the
+registration runtime can run in the operating room without the training stack.
+
+The model file describes itself in its ONNX ``metadata_props`` (written by ``roboseg-export``):
+input size, channels, normalisation and threshold. Images of any size are resized (anisotropically,
+as in training) to the model's input size and the probabilities are resized back.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from roboseg.errors import ModelFileError
+
+log = logging.getLogger(__name__)
+
+#: Metadata keys every roboseg ONNX file carries (values are strings; lists as JSON).
+METADATA_KEYS = (
+    "roboseg_version",
+    "encoder",
+    "in_channels",
+    "input_height",
+    "input_width",
+    "mean",
+    "std",
+    "threshold",
+    "trained_on",
+)
+
+
+@dataclass(frozen=True)
+class SegmentorMeta:
+    """What a model needs to be used correctly, read from its ONNX metadata."""
+
+    encoder: str
+    in_channels: int
+    input_height: int
+    input_width: int
+    mean: tuple[float, float, float]
+    std: tuple[float, float, float]
+    threshold: float
+    trained_on: str = ""
+    roboseg_version: str = ""
+    # Descriptive only (Table S4 columns): parameters in millions, cut-mix-merge, dataset subset.
+    params_m: float = 0.0
+    cmm: bool | None = None
+    dataset: str = ""
+
+    @classmethod
+    def from_props(cls, props: Mapping[str, str], source: str = "model") -> SegmentorMeta:
+        """Parse ``metadata_props``; raise :class:`ModelFileError` naming the missing keys."""
+        missing = [k for k in METADATA_KEYS if k not in props and k != "roboseg_version"]
+        if missing:
+            raise ModelFileError(
+                f"{source}: not a roboseg ONNX model (metadata lacks {', '.join(missing)}); "
+                "pass the missing values as overrides if you know them"
+            )
+        try:
+            mean = tuple(float(x) for x in json.loads(props["mean"]))
+            std = tuple(float(x) for x in json.loads(props["std"]))
+            meta = cls(
+                encoder=str(props["encoder"]),
+                in_channels=int(props["in_channels"]),
+                input_height=int(props["input_height"]),
+                input_width=int(props["input_width"]),
+                mean=mean,  # type: ignore[arg-type]
+                std=std,  # type: ignore[arg-type]
+                threshold=float(props["threshold"]),
+                trained_on=str(props.get("trained_on", "")),
+                roboseg_version=str(props.get("roboseg_version", "")),
+                params_m=float(props.get("params_m", 0.0)),
+                cmm=None if props.get("cmm", "") == "" else props["cmm"] == "1",
+                dataset=str(props.get("dataset", "")),
+            )
+        except (ValueError, TypeError, json.JSONDecodeError) as exc:
+            raise ModelFileError(f"{source}: malformed roboseg metadata ({exc})") from exc
+        if meta.in_channels not in (3, 4) or len(meta.mean) != 3 or len(meta.std) != 3:
+            raise ModelFileError(
+                f"{source}: metadata says in_channels={meta.in_channels}, mean={meta.mean}, "
+                f"std={meta.std}; expected 3 or 4 channels and 3 RGB statistics"
+            )
+        return meta
+
+    def to_props(self) -> dict[str, str]:
+        """The metadata as ONNX ``metadata_props`` strings."""
+        return {
+            "roboseg_version": self.roboseg_version,
+            "encoder": self.encoder,
+            "in_channels": str(self.in_channels),
+            "input_height": str(self.input_height),
+            "input_width": str(self.input_width),
+            "mean": json.dumps(list(self.mean)),
+            "std": json.dumps(list(self.std)),
+            "threshold": repr(self.threshold),
+            "trained_on": self.trained_on,
+            "params_m": f"{self.params_m:.3f}",
+            "cmm": "" if self.cmm is None else str(int(self.cmm)),
+            "dataset": self.dataset,
+        }
+
+
+def preprocess(
+    images: np.ndarray, meta: SegmentorMeta, prior: np.ndarray | None = None
+) -> np.ndarray:
+    """RGB uint8 ``[N,H,W,3]`` (+ optional prior ``[N,H,W]`` in [0,1]) → model input ``[N,C,h,w]``.
+
+    Images are resized to the model's input size (anisotropic, like training), scaled to [0, 1]
+    and normalised with the model's mean/std. A 4-channel model gets the prior as its 4th channel
+    (zeros when ``prior`` is None: "no localisation estimate yet").
+    """
+    if images.ndim != 4 or images.shape[-1] != 3 or images.dtype != np.uint8:
+        raise ValueError(f"images must be uint8 [N,H,W,3] RGB, got {images.dtype} {images.shape}")
+    size = (meta.input_width, meta.input_height)
+    mean = np.asarray(meta.mean, np.float32)
+    std = np.asarray(meta.std, np.float32)
+    out = np.empty((len(images), meta.in_channels, meta.input_height, meta.input_width), np.float32)
+    for i, img in enumerate(images):
+        x = cv2.resize(img, size, interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
+        out[i, :3] = ((x - mean) / std).transpose(2, 0, 1)
+        if meta.in_channels == 4:
+            if prior is None:
+                out[i, 3] = 0.0
+            else:
+                p = np.asarray(prior[i], np.float32)
+                out[i, 3] = cv2.resize(p, size, interpolation=cv2.INTER_NEAREST)
+    return out
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    return 0.5 * (1.0 + np.tanh(0.5 * x))  # overflow-free logistic
+
+
+class OnnxSegmentor:
+    """Robot segmentation with an exported roboseg ONNX model (onnxruntime, CPU by default).
+
+    Args:
+        path: the ``.onnx`` file.
+        overrides: metadata values to use instead of (or, for a foreign model, in place of) the
+            file's; keys as in :data:`METADATA_KEYS`.
+        providers: onnxruntime execution providers; default CUDA when available, else CPU.
+        threads: intra-op threads (None: onnxruntime's default).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        overrides: Mapping[str, object] | None = None,
+        providers: Sequence[str] | None = None,
+        threads: int | None = None,
+    ) -> None:
+        import onnxruntime as ort
+
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise ModelFileError(f"{self.path}: no such ONNX file")
+        opts = ort.SessionOptions()
+        if threads:
+            opts.intra_op_num_threads = threads
+        available = ort.get_available_providers()
+        if providers is None:
+            providers = [
+                p for p in ("CUDAExecutionProvider", "CPUExecutionProvider") if p in available
+            ]
+        try:
+            self.session = ort.InferenceSession(str(self.path), opts, providers=list(providers))
+        except Exception as exc:  # onnxruntime raises its own exception types
+            raise ModelFileError(f"{self.path}: onnxruntime cannot load it ({exc})") from exc
+        props = dict(self.session.get_modelmeta().custom_metadata_map)
+        props.update(
+            {k: v if isinstance(v, str) else json.dumps(v) for k, v in (overrides or {}).items()}
+        )
+        self.meta = SegmentorMeta.from_props(props, source=str(self.path))
+        inp = self.session.get_inputs()[0]
+        self.input_name = inp.name
+        channels = inp.shape[1]
+        if isinstance(channels, int) and channels != self.meta.in_channels:
+            raise ModelFileError(
+                f"{self.path}: metadata says {self.meta.in_channels} input channels but the graph "
+                f"takes {channels}"
+            )
+
+    @property
+    def in_channels(self) -> int:
+        return self.meta.in_channels
+
+    def logits(self, x: np.ndarray) -> np.ndarray:
+        """Raw model output ``[N,1,h,w]`` for an already preprocessed batch ``[N,C,h,w]``."""
+        return self.session.run(None, {self.input_name: np.ascontiguousarray(x, np.float32)})[0]
+
+    def predict(
+        self,
+        images: np.ndarray | Sequence[np.ndarray],
+        prior: np.ndarray | Sequence[np.ndarray] | None = None,
+        *,
+        batch_size: int = 8,
+    ) -> np.ndarray:
+        """Robot probabilities ``[N,H,W]`` float32 at each image's own size.
+
+        Args:
+            images: RGB uint8 ``[N,H,W,3]`` (or a sequence of ``[H,W,3]`` of equal size).
+            prior: in-context prior ``[N,H,W]`` in [0,1] (silhouette rendered at the current pose
+                estimate), used by 4-channel models; None means a zero prior.
+            batch_size: images per onnxruntime call.
+        """
+        images = np.asarray(images)
+        if images.ndim == 3:
+            images = images[None]
+            prior = None if prior is None else np.asarray(prior)[None]
+        if prior is not None:
+            prior = np.asarray(prior, np.float32)
+            if prior.shape != images.shape[:3]:
+                raise ValueError(
+                    f"prior shape {prior.shape} does not match images {images.shape[:3]}"
+                )
+            if self.meta.in_channels == 3:
+                log.debug("%s is a 3-channel model: the prior is ignored", self.path.name)
+        n, h, w = images.shape[:3]
+        out = np.empty((n, h, w), np.float32)
+        for s in range(0, n, batch_size):
+            sl = slice(s, min(n, s + batch_size))
+            x = preprocess(images[sl], self.meta, None if prior is None else prior[sl])
+            probs = _sigmoid(self.logits(x)[:, 0])
+            for i, p in enumerate(probs):
+                out[s + i] = cv2.resize(p, (w, h), interpolation=cv2.INTER_LINEAR)
+        return out
+
+    def predict_mask(self, images: np.ndarray, prior: np.ndarray | None = None) -> np.ndarray:
+        """Binary robot masks ``[N,H,W]`` (probability above the model's threshold)."""
+        return self.predict(images, prior) > self.meta.threshold
