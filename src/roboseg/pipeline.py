@@ -1,0 +1,121 @@
+"""``make train``: the main job on its embedded default, as the commands a user would type.
+
+simulate → annotate → train → export → evaluate, each stage a ``roboseg-*`` command run in a
+subprocess, each finished stage marked with a ``.done`` file so an interrupted run resumes where
+it stopped. Run: ``python -m roboseg.pipeline [out=DIR] [key=value ...]`` (Hydra overrides of
+``conf/pipeline.yaml``).
+"""
+
+from __future__ import annotations
+
+import logging
+import shlex
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from roboseg.config import CONF_DIR
+
+log = logging.getLogger("roboseg.pipeline")
+
+
+def _bin(name: str) -> str:
+    """The console script ``name`` beside this interpreter (the project's venv)."""
+    candidate = Path(sys.executable).with_name(name)
+    return str(candidate) if candidate.exists() else name
+
+
+class Stages:
+    """Runs named stages once: a stage whose marker exists is skipped (resumable)."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self.root.mkdir(parents=True, exist_ok=True)
+
+    def marker(self, name: str) -> Path:
+        return self.root / f".{name}.done"
+
+    def run(self, name: str, argv: Sequence[str]) -> bool:
+        """Run ``argv`` as stage ``name`` unless it already finished; raise on failure."""
+        if self.marker(name).exists():
+            print(f"[{name}] done already, skipped ({self.marker(name)})", flush=True)
+            return False
+        print(f"[{name}] $ {shlex.join(argv)}", flush=True)
+        t0 = time.perf_counter()
+        proc = subprocess.run(list(argv))
+        if proc.returncode != 0:
+            raise SystemExit(f"[{name}] failed with exit status {proc.returncode}")
+        self.marker(name).write_text(f"{time.perf_counter() - t0:.1f} s\n")
+        print(f"[{name}] finished in {time.perf_counter() - t0:.0f} s", flush=True)
+        return True
+
+
+def run_pipeline(cfg: DictConfig) -> Path:
+    """Run the stages of ``cfg`` (see ``conf/pipeline.yaml``); return the model's ONNX path."""
+    out = Path(cfg.out).resolve()
+    stages = Stages(out)
+    raw, annotated, train_dir = out / "recordings", out / "annotated", out / "train"
+    sim = cfg.simulate
+    for split, count in sim.recordings.items():
+        for i in range(int(count)):
+            name = f"{split}_{i:02d}"
+            robots = 2 if split == "test" else 1
+            stages.run(
+                f"simulate_{name}",
+                [_bin("roboseg-simulate"), f"out={raw}", f"name={name}", f"frames={sim.frames}",
+                 f"seed={int(sim.seed) + 100 * i + hash_split(split)}", f"robots={robots}",
+                 f"camera.width={sim.width}", f"camera.height={sim.height}",
+                 *sim.get("overrides", [])],
+            )
+    stages.run(
+        "annotate",
+        [_bin("roboseg-annotate"), f"in={raw}", f"out={annotated}", *cfg.annotate.overrides],
+    )
+    stages.run(
+        "train",
+        [_bin("roboseg-train"), f"experiment={cfg.train.experiment}", f"data.root={annotated}",
+         f"hydra.run.dir={train_dir}", f"seed={cfg.seed}", *cfg.train.overrides],
+    )
+    ckpt = out / "model.ckpt"
+    best = _best_checkpoint(train_dir / "checkpoints")
+    if not ckpt.exists() or best.stat().st_mtime > ckpt.stat().st_mtime:
+        shutil.copy2(best, ckpt)
+    onnx = out / "model.onnx"
+    stages.run("export", [_bin("roboseg-export"), f"ckpt={ckpt}", f"out={onnx}"])
+    stages.run(
+        "evaluate",
+        [_bin("roboseg-eval"), f"models=[{onnx}]", f"data.root={annotated}", f"out={out / 'eval'}",
+         *cfg.evaluate.overrides],
+    )
+    print(f"model checkpoint: {ckpt}\nONNX model:       {onnx}\nIoU table:        "
+          f"{out / 'eval' / 'iou_table.md'}", flush=True)
+    return onnx
+
+
+def hash_split(split: str) -> int:
+    """A small stable offset per split so train/val/test recordings never share a seed."""
+    return {"train": 0, "val": 1000, "test": 2000}.get(split, 3000)
+
+
+def _best_checkpoint(folder: Path) -> Path:
+    """``best.ckpt`` (best validation IoU, written by ``roboseg-train``), else ``last.ckpt``."""
+    for name in ("best.ckpt", "last.ckpt"):
+        if (folder / name).exists():
+            return folder / name
+    raise SystemExit(f"no checkpoint in {folder}: did training finish?")
+
+
+@hydra.main(config_path=CONF_DIR, config_name="pipeline", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    log.debug("pipeline config:\n%s", OmegaConf.to_yaml(cfg))
+    run_pipeline(cfg)
+
+
+if __name__ == "__main__":
+    main()

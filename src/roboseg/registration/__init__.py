@@ -1,0 +1,31 @@
+"""Registration of the robot in a stereo camera: 9D pose, the paper's costs, CSO and SDR.
+
+``T_cam_base`` (base frame → left OpenCV optical frame, metres) is the unknown; the right camera
+follows through the fixed ``T_right_left``. :func:`cso` initialises it by a swarm of virtual
+cameras, :func:`sdr` / :func:`sdr_multistart` refine it by stereo differentiable rendering.
+"""
+
+from roboseg.registration.cso import Candidate, CSOConfig, CSOResult, cso
+from roboseg.registration.losses import RegistrationTarget, distance_mse_loss, exp_dice_loss
+from roboseg.registration.pose import look_at_T_cam_base, matrix_to_pose9d, pose9d_to_matrix
+from roboseg.registration.sdr import RegistrationResult, SDRConfig, sdr, sdr_multistart
+from roboseg.registration.views import View, stereo_views
+
+__all__ = [
+    "CSOConfig",
+    "CSOResult",
+    "Candidate",
+    "RegistrationResult",
+    "RegistrationTarget",
+    "SDRConfig",
+    "View",
+    "cso",
+    "distance_mse_loss",
+    "exp_dice_loss",
+    "look_at_T_cam_base",
+    "matrix_to_pose9d",
+    "pose9d_to_matrix",
+    "sdr",
+    "sdr_multistart",
+    "stereo_views",
+]

@@ -1,0 +1,268 @@
+"""Camera swarm optimisation (CSO): particle swarm over virtual cameras to initialise SDR.
+
+Each particle is a virtual left camera ``x = [eye (3), centre (3), roll (1)]`` in the robot base
+frame (metres, radians): the camera sits at ``eye``, looks at ``centre`` and is rolled about its
+optical axis; ``T_cam_base = look_at(eye, centre, roll)``. Eyes start uniformly distributed in a
+hollow sphere ``r_min ≤ |eye − about| ≤ r_max``, centres uniformly in the ball
+``|centre − about| ≤ centre_radius``, rolls uniformly in ``[−roll_range, roll_range]``.
+
+Fitness = IoU of hard silhouettes of the (decimated) robot, rendered at low resolution, against
+the target masks, averaged over views (right camera through the fixed stereo transform) and
+joint configurations (the paper's sum, divided by the number of terms). Standard PSO update
+(Kennedy & Eberhart) with inertia ``w``, cognitive ``c1`` and social ``c2`` coefficients:
+``v ← w v + c1 r1 (p_best − x) + c2 r2 (g_best − x)``, ``x ← project(x + v)``, where ``project``
+keeps every particle inside its initial domain. The initial swarm is scored before the first
+velocity update. The best few mutually distinct personal bests are returned for multi-start SDR.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from roboseg.errors import CameraError
+from roboseg.registration.losses import iou
+from roboseg.registration.pose import look_at_T_cam_base, rotation_angle
+from roboseg.registration.views import View, resize_masks, vertices_in_view, views_at_resolution
+from roboseg.render.raster import render_hard
+
+__all__ = ["CSOConfig", "Candidate", "CSOResult", "SwarmFitness", "cso", "sample_particles"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class CSOConfig:
+    """Swarm settings. Distances in metres (base frame), angles in radians.
+
+    ``about``: centre of the eye shell and of the look-at ball; ``width``: render width in pixels
+    (height follows each view's aspect ratio); ``chunk``: renders per rasteriser call;
+    ``v_max``: largest step per iteration as a fraction of each coordinate's domain width;
+    ``n_candidates`` distinct results whose poses differ by more than ``min_separation`` metres
+    or ``min_separation_angle`` radians.
+    """
+
+    n_particles: int = 2000
+    iterations: int = 30
+    r_min: float = 1.0
+    r_max: float = 3.0
+    centre_radius: float = 0.5
+    about: tuple[float, float, float] = (0.0, 0.0, 0.5)
+    roll_range: float = math.pi
+    inertia: float = 0.7
+    cognitive: float = 1.5
+    social: float = 1.5
+    v_max: float = 0.2
+    width: int = 80
+    chunk: int = 2048
+    n_candidates: int = 4
+    min_separation: float = 0.05
+    min_separation_angle: float = math.radians(5.0)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.r_min < self.r_max:
+            raise CameraError(f"CSO needs 0 < r_min < r_max, got {self.r_min}, {self.r_max}")
+        if self.centre_radius < 0 or self.roll_range < 0:
+            raise CameraError("CSO centre_radius and roll_range must be non-negative")
+        if self.n_particles < 1 or self.iterations < 0 or self.n_candidates < 1:
+            raise CameraError("CSO needs n_particles >= 1, iterations >= 0, n_candidates >= 1")
+        if self.width < 8:
+            raise CameraError(f"CSO render width must be at least 8 px, got {self.width}")
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A virtual camera found by CSO: its ``T_cam_base`` [4, 4] float64 and fitness (mean IoU)."""
+
+    T_cam_base: np.ndarray
+    fitness: float
+    particle: np.ndarray  # [7]: eye, centre, roll
+
+
+@dataclass(frozen=True)
+class CSOResult:
+    """Best distinct candidates (best first) and the global best fitness after each iteration
+    (``history[0]`` is the scored initial swarm)."""
+
+    candidates: list[Candidate]
+    history: list[float] = field(default_factory=list)
+
+    @property
+    def best(self) -> Candidate:
+        return self.candidates[0]
+
+
+def _uniform_ball(n: int, r_min: float, r_max: float, g: torch.Generator) -> torch.Tensor:
+    """``n`` points ``[n, 3]`` uniform (by volume) in the shell ``r_min ≤ |p| ≤ r_max``."""
+    direction = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    direction = direction / direction.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    u = torch.rand(n, 1, generator=g, dtype=torch.float64)
+    r = (r_min**3 + u * (r_max**3 - r_min**3)) ** (1.0 / 3.0)
+    return direction * r
+
+
+def sample_particles(n: int, cfg: CSOConfig, g: torch.Generator) -> torch.Tensor:
+    """Initial particles ``[n, 7]`` (float64): eye in the shell, centre in the ball, roll."""
+    about = torch.tensor(cfg.about, dtype=torch.float64)
+    eye = about + _uniform_ball(n, cfg.r_min, cfg.r_max, g)
+    centre = (
+        about + _uniform_ball(n, 0.0, cfg.centre_radius, g)
+        if cfg.centre_radius > 0
+        else (about.expand(n, 3).clone())
+    )
+    roll = (2.0 * torch.rand(n, 1, generator=g, dtype=torch.float64) - 1.0) * cfg.roll_range
+    return torch.cat([eye, centre, roll], dim=1)
+
+
+def project_particles(x: torch.Tensor, cfg: CSOConfig) -> torch.Tensor:
+    """Particles ``[n, 7]`` moved back into the domain: eye radius clamped to ``[r_min, r_max]``,
+    centre radius to ``centre_radius``, roll to ``±roll_range``."""
+    about = torch.tensor(cfg.about, dtype=x.dtype)
+    e = x[:, 0:3] - about
+    r = e.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    e = e * (r.clamp(cfg.r_min, cfg.r_max) / r)
+    c = x[:, 3:6] - about
+    rc = c.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    c = c * (rc.clamp(max=cfg.centre_radius) / rc)
+    roll = x[:, 6:7].clamp(-cfg.roll_range, cfg.roll_range)
+    return torch.cat([about + e, about + c, roll], dim=1)
+
+
+def particles_to_T_cam_base(x: torch.Tensor) -> torch.Tensor:
+    """``T_cam_base`` ``[n, 4, 4]`` of particles ``[n, 7]``."""
+    return look_at_T_cam_base(x[:, 0:3], x[:, 3:6], x[:, 6])
+
+
+class SwarmFitness:
+    """Mean IoU of many candidate ``T_cam_base`` against fixed targets, by batched hard renders.
+
+    Args:
+        vertices_base: ``[C, V, 3]`` robot vertices (base frame) per configuration, ideally of a
+            decimated mesh.
+        faces: ``[F, 3]``.
+        views: full-resolution views (left first); rendered at ``width`` pixels wide.
+        masks: per view, target masks ``[C, H, W]`` (resized to the render resolution).
+    """
+
+    def __init__(
+        self,
+        vertices_base: torch.Tensor,
+        faces: torch.Tensor,
+        views: Sequence[View],
+        masks: Sequence[np.ndarray | torch.Tensor],
+        width: int = 80,
+        chunk: int = 2048,
+    ) -> None:
+        if len(views) != len(masks):
+            raise ValueError(f"{len(views)} views but {len(masks)} target mask stacks")
+        self.vertices_base = vertices_base.to(torch.float32)
+        self.faces = faces
+        self.views = views_at_resolution(views, width)
+        self.targets = [
+            torch.from_numpy(resize_masks(m, v.width, v.height))
+            for v, m in zip(self.views, masks, strict=True)
+        ]
+        for v, t in zip(self.views, self.targets, strict=True):
+            if t.shape[0] != self.vertices_base.shape[0]:
+                raise ValueError(
+                    f"view {v.name!r}: {t.shape[0]} masks for "
+                    f"{self.vertices_base.shape[0]} configurations"
+                )
+        self.chunk = max(1, int(chunk))
+
+    def __call__(self, T_cam_base: torch.Tensor) -> torch.Tensor:
+        """Fitness ``[n]`` in [0, 1] of poses ``[n, 4, 4]``."""
+        n, n_conf = T_cam_base.shape[0], self.vertices_base.shape[0]
+        total = torch.zeros(n, dtype=torch.float64)
+        per_chunk = max(1, self.chunk // n_conf)
+        T_all = T_cam_base.to(torch.float32)
+        for view, target in zip(self.views, self.targets, strict=True):
+            K = view.K.to(torch.float32)
+            for s in range(0, n, per_chunk):
+                T = T_all[s : s + per_chunk]
+                verts = vertices_in_view(T[:, None], view, self.vertices_base[None])
+                verts = verts.reshape(-1, *self.vertices_base.shape[1:])  # [n_chunk*C, V, 3]
+                visible = (verts[..., 2] > 0).any(dim=1)
+                masks = torch.zeros(verts.shape[0], view.height, view.width, dtype=torch.bool)
+                if bool(visible.any()):
+                    masks[visible] = render_hard(
+                        verts[visible], self.faces, K, view.height, view.width
+                    )
+                scores = iou(masks.view(T.shape[0], n_conf, view.height, view.width), target)
+                total[s : s + T.shape[0]] += scores.to(torch.float64).sum(dim=1)
+        return total / (len(self.views) * n_conf)
+
+
+def _distinct_best(x: torch.Tensor, fitness: torch.Tensor, cfg: CSOConfig) -> list[Candidate]:
+    """Greedy pick of the fittest particles whose poses differ pairwise by the separations."""
+    order = torch.argsort(fitness, descending=True)
+    T = particles_to_T_cam_base(x)
+    chosen: list[int] = []
+    for i in order.tolist():
+        distinct = all(
+            float((T[i, :3, 3] - T[j, :3, 3]).norm()) > cfg.min_separation
+            or float(rotation_angle(T[i, :3, :3], T[j, :3, :3])) > cfg.min_separation_angle
+            for j in chosen
+        )
+        if distinct:
+            chosen.append(i)
+        if len(chosen) == cfg.n_candidates:
+            break
+    return [
+        Candidate(T[i].numpy().astype(np.float64), float(fitness[i]), x[i].numpy().copy())
+        for i in chosen
+    ]
+
+
+def cso(
+    vertices_base: torch.Tensor,
+    faces: torch.Tensor,
+    views: Sequence[View],
+    masks: Sequence[np.ndarray | torch.Tensor],
+    config: CSOConfig | None = None,
+) -> CSOResult:
+    """Search ``T_cam_base`` of the left camera by camera swarm optimisation.
+
+    ``vertices_base`` [C, V, 3] are the robot's vertices in its C configurations (base frame,
+    metres; decimate the mesh first, e.g. ``robot.decimated(0.95)``), ``masks[i]`` [C, H, W] the
+    segmentations seen by ``views[i]``. Deterministic for a given ``config.seed``.
+    """
+    cfg = config or CSOConfig()
+    g = torch.Generator().manual_seed(cfg.seed)
+    fit = SwarmFitness(vertices_base, faces, views, masks, cfg.width, cfg.chunk)
+    x = sample_particles(cfg.n_particles, cfg, g)
+    v = torch.zeros_like(x)
+    span = torch.tensor(
+        [2 * cfg.r_max] * 3 + [2 * max(cfg.centre_radius, 1e-6)] * 3 + [2 * cfg.roll_range],
+        dtype=torch.float64,
+    )
+    v_max = cfg.v_max * span
+    f = fit(particles_to_T_cam_base(x))
+    p_best, p_fit = x.clone(), f.clone()
+    g_idx = int(torch.argmax(p_fit))
+    history = [float(p_fit[g_idx])]
+    log.info("CSO: %d particles, initial best IoU %.3f", cfg.n_particles, history[0])
+    for it in range(1, cfg.iterations + 1):
+        r1 = torch.rand(x.shape, generator=g, dtype=torch.float64)
+        r2 = torch.rand(x.shape, generator=g, dtype=torch.float64)
+        g_best = p_best[g_idx]
+        v = cfg.inertia * v + cfg.cognitive * r1 * (p_best - x) + cfg.social * r2 * (g_best - x)
+        v = torch.maximum(torch.minimum(v, v_max), -v_max)
+        x_new = project_particles(x + v, cfg)
+        v = x_new - x  # the step actually taken (no momentum through the bounds)
+        x = x_new
+        f = fit(particles_to_T_cam_base(x))
+        better = f > p_fit
+        p_best[better], p_fit[better] = x[better], f[better]
+        g_idx = int(torch.argmax(p_fit))
+        history.append(float(p_fit[g_idx]))
+        log.debug("CSO %d: best IoU %.4f, mean %.4f", it, history[-1], float(f.mean()))
+    candidates = _distinct_best(p_best, p_fit, cfg)
+    log.info("CSO done: best IoU %.3f (%d candidates)", candidates[0].fitness, len(candidates))
+    return CSOResult(candidates, history)
