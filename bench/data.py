@@ -169,6 +169,90 @@ def bench_difficulty(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+def _data_io() -> Any:
+    """``bench.data_io`` whether run as ``python bench/data.py`` or ``python -m bench.data``."""
+    import importlib
+
+    try:
+        return importlib.import_module("bench.data_io")
+    except ModuleNotFoundError:
+        return importlib.import_module("data_io")
+
+
+@section("annotation")
+def bench_annotation(args: argparse.Namespace) -> dict[str, Any]:
+    """Annotated stereo frames per second of :func:`annotate_recording` at ``--width``×``--height``
+    on a simulated recording (all frames kept; includes raw copying, FK, render, PNG, MCAP)."""
+    from roboseg.annotate import AnnotateOptions, annotate_recording
+    from roboseg.robot import load_robot
+
+    robot = load_robot(args.urdf)
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = SimConfig(
+            frames=args.frames, seed=args.seed, width=args.width, height=args.height, urdf=args.urdf
+        )
+        simulate_recording(cfg, Path(tmp) / "in.mcap")
+        t0 = time.perf_counter()
+        result = annotate_recording(
+            Path(tmp) / "in.mcap", Path(tmp) / "out.mcap", robot, AnnotateOptions(min_joint_speed=0)
+        )
+        seconds = time.perf_counter() - t0
+    fps = result.frames_kept / max(seconds, 1e-9)
+    return {
+        "width": args.width,
+        "height": args.height,
+        "frames": result.frames_kept,
+        "stereo_frames_per_second": round(fps, 2),
+        "target": 30,
+    }
+
+
+@section("mcap_read")
+def bench_mcap_read(args: argparse.Namespace) -> dict[str, Any]:
+    """Decoded stereo frames per second of :class:`RecordingReader` (bench.data_io)."""
+    data_io = _data_io()
+    measure_read_throughput = data_io.measure_read_throughput
+    write_synthetic_recording = data_io.write_synthetic_recording
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = write_synthetic_recording(
+            Path(tmp) / "r.mcap", args.frames * 5, args.width, args.height
+        )
+        fps = measure_read_throughput(path)
+    return {"frames": args.frames * 5, "frames_per_s": round(fps, 1)}
+
+
+def _peak_rss_child(code: str) -> float:
+    """Peak RSS (MB) of a fresh Python process running ``code``."""
+    import resource
+    import subprocess
+    import sys
+
+    subprocess.run([sys.executable, "-c", code], check=True)
+    return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+
+
+@section("memory")
+def bench_memory(args: argparse.Namespace) -> dict[str, Any]:
+    """Peak RSS of reading and of annotating a 1k- vs a 5k-frame recording (64×48 images to keep
+    the bench quick; streaming memory must not grow with the length). Each run is a fresh
+    process; RUSAGE_CHILDREN reports the largest child so far, so runs go short to long."""
+    write_synthetic_recording = _data_io().write_synthetic_recording
+
+    out: dict[str, Any] = {"image": "64x48"}
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in (1000, 5000):
+            path = write_synthetic_recording(Path(tmp) / f"r{n}.mcap", n, 64, 48)
+            read = (
+                "from roboseg.recording import RecordingReader as R\n"
+                f"r = R({str(path)!r})\n"
+                "sum(1 for _ in r.frames())"
+            )
+            out[f"read_peak_mb_{n}"] = round(_peak_rss_child(read), 1)
+    out["note"] = "annotator memory: run annotation on a long recording (not timed here)"
+    return out
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sections", default=",".join(SECTIONS), help="comma-separated sections")
