@@ -5,7 +5,11 @@ silhouette and one differentiable iteration (soft forward including the hard ras
 loss and the backward pass to the vertices) for 2 views × 9 configurations at 256² and 512²,
 with the KUKA LBR Med 7 decimated by 95 % (the built-in robot when the Med 7 is absent).
 Targets: a full differentiable iteration at 256² within 300 ms, and differentiable / hard
-within 10×. Wall-clock numbers depend on machine load; the median of several repeats is shown.
+within 10×. A second table times the annotation-scale case, the hard silhouette and the z-buffer
+of the full (undecimated) model at 540×960 per view (target <= 12 ms per silhouette, i.e. 30
+stereo frames/s after FK and I/O), and a camera swarm of 2000 views at 64×64 of the decimated
+model (target <= 1 s). Wall-clock numbers depend on machine load; the median of several repeats
+is shown.
 """
 
 from __future__ import annotations
@@ -23,21 +27,33 @@ if __package__ in (None, ""):  # run as a script: make ``bench`` importable
 
 from bench.common import format_table, time_calls, verdict  # noqa: E402
 from roboseg.camera import look_at  # noqa: E402
+from roboseg.render import rasterize, render_hard  # noqa: E402
 from roboseg.render.soft import SilhouetteRenderer  # noqa: E402
 from roboseg.robot import load_robot  # noqa: E402
 
 MED7 = Path(__file__).resolve().parents[2] / "shared" / "robots" / "lbr_med7" / "lbr_med7.urdf"
 ITERATION_TARGET_MS = 300.0
+FULL_VIEW_TARGET_MS = 12.0
+SWARM_TARGET_S = 1.0
 RATIO_TARGET = 10.0
 BASELINE_M = 0.12
 log = logging.getLogger("bench.render")
 
 
 def stereo_views(
-    urdf: Path | None, n_configs: int, size: int, seed: int = 0
+    urdf: Path | None,
+    n_configs: int,
+    size: int,
+    seed: int = 0,
+    reduction: float = 0.95,
+    height: int | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, str]:
-    """Vertices ``[2·n, V, 3]`` in the left then right optical frames, faces, ``K``, robot name."""
-    robot = load_robot(urdf).decimated(0.95)
+    """Vertices ``[2·n, V, 3]`` in the left then right optical frames, faces, ``K``, robot name,
+    for images ``height`` (default ``size``) × ``size`` pixels."""
+    height = height or size
+    robot = load_robot(urdf)
+    if reduction > 0:
+        robot = robot.decimated(reduction)
     q = robot.random_joints(n_configs, torch.Generator().manual_seed(seed))
     verts_base = robot.posed_vertices(q)
     T_left_base = look_at(torch.tensor([1.3, 0.9, 0.9]), torch.tensor([0.0, 0.0, 0.55]))
@@ -47,7 +63,7 @@ def stereo_views(
     for T in (T_left_base, T_right_left @ T_left_base):
         views.append(verts_base @ T[:3, :3].T + T[:3, 3])
     f = size / (2 * math.tan(math.radians(27.5)))  # 55° field of view
-    K = torch.tensor([[f, 0.0, (size - 1) / 2], [0.0, f, (size - 1) / 2], [0.0, 0.0, 1.0]])
+    K = torch.tensor([[f, 0.0, (size - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
     return torch.cat(views), robot.faces, K, f"{robot.name} ({len(robot.faces)} faces)"
 
 
@@ -67,12 +83,42 @@ def bench_size(
     return {name: 1e3 * t[name]["median"] for name in t}
 
 
+def bench_annotation_scale(
+    urdf: Path | None, repeats: int, swarm: int
+) -> tuple[list[list[object]], list[str]]:
+    """Rows (case, ms per view, total) and verdict lines: full model at 540×960 (hard
+    silhouette, z-buffer), decimated model in ``swarm`` views at 64×64 (hard silhouette)."""
+    verts, faces, K, name = stereo_views(urdf, 1, 960, reduction=0.0, height=540)
+    t = time_calls(
+        {
+            "hard": lambda: render_hard(verts, faces, K, 540, 960),
+            "zbuf": lambda: rasterize(verts, faces, K, 540, 960),
+        },
+        repeats,
+    )
+    hard_ms, zbuf_ms = 1e3 * t["hard"]["median"] / 2, 1e3 * t["zbuf"]["median"] / 2
+    rows: list[list[object]] = [
+        [f"{name} 540x960 silhouette", hard_ms, 2 * hard_ms],
+        [f"{name} 540x960 z-buffer", zbuf_ms, 2 * zbuf_ms],
+    ]
+    sv, sf, sk, sname = stereo_views(urdf, swarm // 2, 64)
+    ts = time_calls({"swarm": lambda: render_hard(sv, sf, sk, 64, 64)}, max(1, repeats // 2))
+    swarm_s = ts["swarm"]["median"]
+    rows.append([f"{sname} {len(sv)} views 64x64", 1e3 * swarm_s / len(sv), 1e3 * swarm_s])
+    lines = [
+        verdict("full-model silhouette 540x960", hard_ms, FULL_VIEW_TARGET_MS, "ms/view"),
+        verdict(f"swarm {len(sv)} views 64x64", swarm_s, SWARM_TARGET_S, "s"),
+    ]
+    return rows, lines
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--configs", type=int, default=9, help="robot configurations")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512])
+    parser.add_argument("--swarm", type=int, default=2000, help="views of the swarm case (0: skip)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     if args.threads:
@@ -110,6 +156,12 @@ def main(argv: list[str] | None = None) -> int:
         line = verdict(f"differentiable/hard {size}²", r["soft"] / r["hard"], RATIO_TARGET, "x")
         ok &= line.startswith("PASS")
         print(line)
+    if args.swarm:
+        rows, lines = bench_annotation_scale(urdf, args.repeats, args.swarm)
+        print(format_table(["case", "ms/view", "ms total"], rows))
+        for line in lines:
+            ok &= line.startswith("PASS")
+            print(line)
     return 0 if ok else 1
 
 

@@ -244,3 +244,27 @@ def test_inputs_requiring_grad_and_float64_are_accepted() -> None:
     r = rasterize(verts, QUAD_FACES, K, 10, 10)
     assert not r.depth.requires_grad and r.depth.dtype == torch.float32
     assert int(r.mask.sum()) == 36 and torch.all(r.depth[r.mask] == 2.0)
+
+
+def test_back_face_culling_keeps_closed_meshes_and_drops_faces_turned_away() -> None:
+    import trimesh
+
+    box = trimesh.creation.box(extents=(0.4, 0.3, 0.5))  # closed, outward counter-clockwise
+    g = torch.Generator().manual_seed(3)
+    eyes = torch.randn(4, 3, generator=g, dtype=torch.float64)
+    eyes = 1.5 * eyes / eyes.norm(dim=1, keepdim=True)
+    T = look_at(eyes, torch.zeros(4, 3, dtype=torch.float64))
+    v = torch.as_tensor(box.vertices)
+    cam = (v @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]).float()
+    faces = torch.as_tensor(box.faces)
+    K = torch.tensor([[40.0, 0.0, 23.5], [0.0, 40.0, 23.5], [0.0, 0.0, 1.0]])
+    full = rasterize(cam, faces, K, 48, 48)
+    culled = rasterize(cam, faces, K, 48, 48, cull_back_faces=True)
+    assert full.mask.sum() > 200
+    assert torch.equal(full.depth, culled.depth) and torch.equal(full.mask, culled.mask)
+    assert torch.equal(render_hard(cam, faces, K, 48, 48, cull_back_faces=True), full.mask)
+    # a lone triangle, counter-clockwise seen from the camera (front) or clockwise (back)
+    tri = torch.tensor([[[1.0, 1.0, 1.0], [1.0, 5.0, 1.0], [5.0, 1.0, 1.0]]])
+    front, back = torch.tensor([[0, 1, 2]]), torch.tensor([[0, 2, 1]])
+    assert rasterize(tri, front, torch.eye(3), 8, 8, cull_back_faces=True).mask.sum() == 15
+    assert not render_hard(tri, back, torch.eye(3), 8, 8, cull_back_faces=True).any()

@@ -13,7 +13,7 @@ import trimesh
 
 from roboseg.errors import RobotModelError
 from roboseg.robot import RobotModel, default_urdf_path, load_robot
-from roboseg.robot.meshes import MIN_DECIMATED_FACES, decimation_target
+from roboseg.robot.meshes import MIN_DECIMATED_FACES, cluster_vertices, decimation_target
 from roboseg.robot.transforms import origin_matrix, rpy_matrix
 
 MED7_JOINTS = [f"A{i}" for i in range(1, 8)]
@@ -88,6 +88,18 @@ def test_rpy_matrix_matches_hand_computed_rotations() -> None:
     )
     T = origin_matrix([1, 2, 3], [0, math.pi / 2, 0])  # pitch 90° maps x onto -z
     np.testing.assert_allclose(T @ [1, 0, 0, 1], [1, 2, 2, 1], atol=1e-12)
+
+
+def test_cluster_vertices_merges_cells_and_drops_collapsed_faces() -> None:
+    # a unit square (two triangles) plus a sliver whose corners 1 and 4 share a 0.5-wide cell
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [1.2, 0.1, 0]], dtype=np.float64)
+    f = np.array([[0, 1, 2], [0, 2, 3], [1, 4, 2], [2, 1, 0]])
+    merged, faces = cluster_vertices(v, f, 0.5)
+    assert len(merged) == 4
+    np.testing.assert_allclose(merged[faces[0, 1]], [1.1, 0.05, 0.0])  # mean of 1 and 4
+    # the sliver collapses, the reversed duplicate of face 0 goes: the square remains
+    assert faces.shape == (2, 3)
+    np.testing.assert_allclose(merged[faces].reshape(-1, 3)[:, :2].sum(), 6.15)
 
 
 def test_decimation_target_counts() -> None:
@@ -422,15 +434,16 @@ def test_med7_decimation_by_paper_reduction(lbr_urdf: Path) -> None:
     full = load_robot(lbr_urdf)
     small = full.decimated(0.95)
     ratio = len(small.faces) / len(full.faces)
-    # fast-simplification stops early on a few thin-walled parts: ~11 % remain, not 5 %
-    assert 0.03 < ratio < 0.15
+    assert abs(ratio - 0.05) < 0.01 * 0.05  # 5 % of the faces kept, within 1 % of the target
     assert small.frame_names == full.frame_names
     q = full.random_joints(9, torch.Generator().manual_seed(0))
     a, b = full.posed_vertices(q), small.posed_vertices(q)
     assert b.shape == (9, len(small.vertices), 3)
-    for i in range(9):  # same envelope within a centimetre
-        np.testing.assert_allclose(b[i].min(0).values, a[i].min(0).values, atol=1e-2)
-        np.testing.assert_allclose(b[i].max(0).values, a[i].max(0).values, atol=1e-2)
+    # same envelope within 2 cm: quadric decimation of link_4 to 5 % moves its support in
+    # some directions by up to ~1.7 cm (~1.6 cm already when it stalled at 20 %)
+    for i in range(9):
+        np.testing.assert_allclose(b[i].min(0).values, a[i].min(0).values, atol=2e-2)
+        np.testing.assert_allclose(b[i].max(0).values, a[i].max(0).values, atol=2e-2)
 
 
 # --- bad input ----------------------------------------------------------------------------------

@@ -4,12 +4,15 @@ Coverage rule: pixel (u, v) is covered by a triangle iff its centre (integer coo
 ``docs/architecture.md``) lies inside or on the projected triangle, whatever its winding.
 Triangles with any vertex closer than ``z_near`` are culled whole (no near-plane clipping).
 
-Algorithm: project the vertices, bound every triangle by the pixel centres of its bounding box
-(clipped to the image), enumerate (triangle, pixel) pairs in chunks (``repeat_interleave``),
-evaluate barycentric coordinates as affine functions of the pixel offset from the box corner,
-and resolve visibility with one ``scatter_reduce(amin)`` on a 64-bit key packing the float32
-depth above the face index (positive floats order like their bit patterns), so the nearest
-surface wins and ties go to the lower face index.
+Algorithm (scanline spans): project the vertices, cull triangles whose pixel-centre bounding box
+is empty or off-image, and intersect every pixel row a triangle crosses with its three edges (in
+the vertices' float dtype), which gives the span ``[ceil(left), floor(right)]`` of covered pixel
+centres. :func:`render_hard` only marks span ends in a difference image and takes a cumulative
+sum along the rows; :func:`rasterize` enumerates the pixels of the spans, evaluates 1/z (affine
+in screen space) and resolves visibility with one ``scatter_reduce(amin)`` on a 64-bit key
+packing the float32 depth above the face index (positive floats order like their bit patterns),
+so the nearest surface wins and ties go to the lower face index. Both functions use the same
+spans, so their silhouettes are identical.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import torch
 from roboseg.camera import project
 from roboseg.errors import CameraError
 
-#: (triangle, pixel) pairs evaluated at once; bounds the working memory (~100 B per pair).
+#: (triangle, row) spans or covered pixels handled at once; bounds the working memory.
 PAIR_CHUNK = 1 << 20
 #: Triangles (views × faces) set up at once.
 TRIANGLE_CHUNK = 1 << 20
@@ -40,13 +43,24 @@ class Raster:
 
 @dataclass
 class _Triangles:
-    """Triangles that survived culling, set up for pixel enumeration."""
+    """Triangles that survived culling, set up for scanline spans (vertices' dtype, pixels)."""
 
-    origin: torch.Tensor  # [T] int64 flat index (view, vmin, umin) of the box's first pixel
-    box_w: torch.Tensor  # [T] int64 bounding-box width in pixels
-    count: torch.Tensor  # [T] int64 pixels in the bounding box
-    coef: torch.Tensor  # [T, 9 or 12] barycentrics (and 1/z) at the box corner, d/du, d/dv
+    view: torch.Tensor  # [T] int64 view index in the whole batch
     face: torch.Tensor  # [T] int64 face index
+    row0: torch.Tensor  # [T] int64 first pixel row (inside the image)
+    rows: torch.Tensor  # [T] int64 number of pixel rows (>= 1)
+    edges: torch.Tensor  # [T, 12] float, see :func:`_edge_table`
+    depth: torch.Tensor | None  # [T, 5] (u0, v0, 1/z0, d(1/z)/du, d(1/z)/dv) or None
+
+
+@dataclass
+class _Spans:
+    """Non-empty (triangle, row) spans of covered pixel centres ``u0 <= u <= u1``."""
+
+    tri: torch.Tensor  # [S] int64 index into the chunk's triangles
+    row: torch.Tensor  # [S] int64 pixel row v
+    u0: torch.Tensor  # [S] int64 first covered column
+    u1: torch.Tensor  # [S] int64 last covered column
 
 
 def rasterize(
@@ -56,6 +70,7 @@ def rasterize(
     height: int,
     width: int,
     z_near: float = 0.01,
+    cull_back_faces: bool = False,
 ) -> Raster:
     """Depth, face id and silhouette of meshes seen by pinhole cameras.
 
@@ -65,6 +80,9 @@ def rasterize(
         K: [3, 3] or [B, 3, 3] camera matrices (pixels).
         height, width: image size in pixels.
         z_near: triangles with a vertex at z < z_near (metres) are culled.
+        cull_back_faces: skip, per view, the faces whose counter-clockwise (outward) normal
+            points away from the camera. Exact only for closed meshes with outward winding,
+            where a back face never decides a pixel; about halves the work.
 
     Raises:
         CameraError: bad image size / z_near, or every vertex of a view is at z <= 0.
@@ -73,17 +91,21 @@ def rasterize(
     B = verts_cam.shape[0]
     device = verts_cam.device
     buffer = torch.full((B * height * width,), _EMPTY_KEY, dtype=torch.int64, device=device)
-    for tris in _triangle_chunks(verts_cam, faces, K, height, width, z_near, with_depth=True):
-        for t, du, dv in _pair_chunks(tris.count, tris.box_w):
-            c = tris.coef[t]
-            lam = c[:, 0:3] + c[:, 3:6] * du[:, None] + c[:, 6:9] * dv[:, None]
-            inside = (lam >= 0).all(dim=1)
-            t, du, dv, c = t[inside], du[inside], dv[inside], c[inside]
-            inv_z = c[:, 9] + c[:, 10] * du + c[:, 11] * dv
-            z = (1.0 / inv_z.clamp_min(1e-30)).to(torch.float32)  # > 0: keys order by depth
-            key = (z.view(torch.int32).to(torch.int64) << 32) | tris.face[t]
-            pix = tris.origin[t] + dv.to(torch.int64) * width + du.to(torch.int64)
-            buffer.scatter_reduce_(0, pix, key, reduce="amin")
+    for tris in _triangle_chunks(verts_cam, faces, K, height, width, z_near, True, cull_back_faces):
+        assert tris.depth is not None
+        for spans in _span_chunks(tris, width):
+            # per span: flat index, 1/z at its first pixel and d(1/z)/du; face in the low word
+            d = tris.depth.index_select(0, spans.tri)  # [S, 5]
+            u0 = spans.u0.to(d.dtype)
+            inv_z0 = d[:, 2] + d[:, 3] * (u0 - d[:, 0]) + d[:, 4] * (spans.row - d[:, 1])
+            start = (tris.view.index_select(0, spans.tri) * height + spans.row) * width + spans.u0
+            face = tris.face.index_select(0, spans.tri)
+            for s, du in _pixel_chunks(spans.u1 - spans.u0 + 1):
+                inv_z = inv_z0.index_select(0, s) + d[:, 3].index_select(0, s) * du
+                z = (1.0 / inv_z.clamp_min(1e-30)).to(torch.float32)  # > 0: keys order by depth
+                key = (z.view(torch.int32).to(torch.int64) << 32) | face.index_select(0, s)
+                pix = start.index_select(0, s) + du
+                buffer.scatter_reduce_(0, pix, key, reduce="amin")
     buffer = buffer.view(B, height, width)
     mask = buffer != _EMPTY_KEY
     depth = (buffer >> 32).to(torch.int32).view(torch.float32)
@@ -99,19 +121,27 @@ def render_hard(
     height: int,
     width: int,
     z_near: float = 0.01,
+    cull_back_faces: bool = False,
 ) -> torch.Tensor:
-    """Silhouette [B, H, W] bool only (no depth test); same inputs and rule as :func:`rasterize`."""
+    """Silhouette [B, H, W] bool only (no depth test); same inputs and rule as :func:`rasterize`.
+
+    Every span adds +1 at its first column and -1 after its last one in a [B, H, W + 1]
+    difference image; a pixel is covered iff the running sum along its row is positive.
+    """
     verts_cam, faces, K = _check_inputs(verts_cam, faces, K, height, width, z_near)
     B = verts_cam.shape[0]
-    mask = torch.zeros(B * height * width, dtype=torch.bool, device=verts_cam.device)
-    for tris in _triangle_chunks(verts_cam, faces, K, height, width, z_near, with_depth=False):
-        for t, du, dv in _pair_chunks(tris.count, tris.box_w):
-            c = tris.coef[t]
-            lam = c[:, 0:3] + c[:, 3:6] * du[:, None] + c[:, 6:9] * dv[:, None]
-            inside = (lam >= 0).all(dim=1)
-            pix = tris.origin[t[inside]] + dv[inside].to(torch.int64) * width
-            mask[pix + du[inside].to(torch.int64)] = True
-    return mask.view(B, height, width)
+    stride = width + 1
+    diff = torch.zeros(B * height * stride, dtype=torch.int32, device=verts_cam.device)
+    for tris in _triangle_chunks(
+        verts_cam, faces, K, height, width, z_near, False, cull_back_faces
+    ):
+        for spans in _span_chunks(tris, width):
+            start = (tris.view.index_select(0, spans.tri) * height + spans.row) * stride + spans.u0
+            ones = torch.ones_like(start, dtype=torch.int32)
+            diff.index_add_(0, start, ones)
+            diff.index_add_(0, start + (spans.u1 - spans.u0 + 1), -ones)
+    covered = diff.view(B, height, stride).cumsum(dim=2, dtype=torch.int32)[..., :width] > 0
+    return covered
 
 
 def _check_inputs(
@@ -158,6 +188,7 @@ def _triangle_chunks(
     width: int,
     z_near: float,
     with_depth: bool,
+    cull_back_faces: bool,
 ) -> Iterator[_Triangles]:
     """Set up the triangles of groups of views, at most :data:`TRIANGLE_CHUNK` at a time."""
     B, F = verts_cam.shape[0], faces.shape[0]
@@ -169,7 +200,7 @@ def _triangle_chunks(
         b1 = min(B, b0 + views)
         v = verts_cam[b0:b1]
         uvz = torch.cat([project(v, K[b0:b1]), v[..., 2:3]], dim=-1)  # [b, V, 3]
-        tris = _setup(uvz, faces, corners, b0, height, width, z_near, with_depth)
+        tris = _setup(uvz, faces, corners, b0, height, width, z_near, with_depth, cull_back_faces)
         if tris is not None:
             yield tris
 
@@ -183,14 +214,16 @@ def _setup(
     width: int,
     z_near: float,
     with_depth: bool,
+    cull_back_faces: bool,
 ) -> _Triangles | None:
-    """Cull the triangles of views ``uvz`` [b, V, (u, v, z)] and express their barycentrics
-    (and 1/z) as affine maps of the pixel offset from their bounding box's first pixel centre.
+    """Cull the triangles of views ``uvz`` [b, V, (u, v, z)] and set up their edges.
 
     Culling works on small integers: per vertex, the pixel-centre bounds ceil/floor of u and v
     (clamped to [-1, size], which keeps every decision) and, if any vertex is nearer than
     z_near, a flag z >= z_near; a triangle survives iff min ceil <= max floor on both axes
-    inside the image and all its flags are set.
+    inside the image and all its flags are set. Degenerate triangles (|2·area| <= 1e-9 px²)
+    are dropped, and with ``cull_back_faces`` those with positive image-space area: with every
+    z > 0, sign(2·area) = sign(a · ((b - a) × (c - a))) for the camera-frame corners a, b, c.
     """
     nb, V, _ = uvz.shape
     F = faces.shape[0]
@@ -201,70 +234,117 @@ def _setup(
     bounds += [torch.floor(u).clamp_(-1, width), torch.floor(v).clamp_(-1, height)]
     if not bool(good.all()):  # the flag needs a channel of its own (min over the corners)
         bounds.append(good.to(uvz.dtype))
-    rounded = torch.stack(bounds, dim=1).to(small)  # [b, 4 or 5, V]
-    nc = rounded.shape[1]
-    tri = rounded.view(nb * nc, V).index_select(1, corners).view(nb, nc, 3, F)
-    lo = torch.minimum(torch.minimum(tri[:, :2, 0], tri[:, :2, 1]), tri[:, :2, 2])  # [b, 2, F]
-    hi = torch.maximum(torch.maximum(tri[:, 2:4, 0], tri[:, 2:4, 1]), tri[:, 2:4, 2])
-    keep = lo[:, 0].clamp_min(0) <= hi[:, 0].clamp_max(width - 1)
-    keep &= lo[:, 1].clamp_min(0) <= hi[:, 1].clamp_max(height - 1)
+    rounded = torch.stack(bounds, dim=-1).to(small)  # [b, V, 4 or 5]
+    nc = rounded.shape[-1]
+    tri = rounded.index_select(1, corners).view(nb, 3, F, nc)
+    lo = torch.minimum(torch.minimum(tri[:, 0], tri[:, 1]), tri[:, 2])  # [b, F, nc]
+    hi = torch.maximum(torch.maximum(tri[:, 0], tri[:, 1]), tri[:, 2])
+    keep = lo[..., 0].clamp_min(0) <= hi[..., 2].clamp_max(width - 1)
+    keep &= lo[..., 1].clamp_min(0) <= hi[..., 3].clamp_max(height - 1)
     if nc == 5:
-        keep &= torch.minimum(torch.minimum(tri[:, 4, 0], tri[:, 4, 1]), tri[:, 4, 2]) > 0
+        keep &= lo[..., 4] > 0
     idx = keep.view(-1).nonzero().squeeze(1)
     if idx.numel() == 0:
         return None
     b, f = torch.div(idx, F, rounding_mode="floor"), idx % F
-    box = b * 2 * F + f  # survivors' first (u, v) and last (u, v) pixel centres [T, 2]
-    first = torch.stack([lo.view(-1)[box], lo.view(-1)[box + F]], dim=1).to(uvz.dtype)
-    last = torch.stack([hi.view(-1)[box], hi.view(-1)[box + F]], dim=1).to(uvz.dtype)
-    first.clamp_(min=0)
-    last[:, 0].clamp_(max=width - 1)
-    last[:, 1].clamp_(max=height - 1)
-    p = uvz.reshape(nb * V, 3)[(b * V)[:, None] + faces[f]].transpose(1, 2)  # [T, uvz, corner]
-    x0, x1, x2 = p[:, 0].unbind(1)
-    y0, y1, y2 = p[:, 1].unbind(1)
-    area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)  # twice the signed area
-    sel = (area2.abs() > 1e-9).nonzero().squeeze(1)
-    if sel.numel() < area2.numel():
-        x0, x1, x2, y0, y1, y2, area2 = (a[sel] for a in (x0, x1, x2, y0, y1, y2, area2))
-        b, f, first, last, p = b[sel], f[sel], first[sel], last[sel], p[sel]
-    # Edge function opposite vertex i over the edge j -> k, (i, j, k) cyclic:
-    # E_i(u, v) = (x_k - x_j)(v - y_j) - (y_k - y_j)(u - x_j); barycentric l_i = E_i / (2·area).
-    xj, yj = torch.stack([x1, x2, x0], dim=1), torch.stack([y1, y2, y0], dim=1)  # [T, 3]
-    ex = torch.stack([x2 - x1, x0 - x2, x1 - x0], dim=1) / area2[:, None]
-    ey = torch.stack([y2 - y1, y0 - y2, y1 - y0], dim=1) / area2[:, None]
-    lam0 = ex * (first[:, 1:2] - yj) - ey * (first[:, 0:1] - xj)
-    parts = [lam0, -ey, ex]
+    row0 = lo[..., 1].reshape(-1).index_select(0, idx).to(torch.int64).clamp_(min=0)
+    row1 = hi[..., 3].reshape(-1).index_select(0, idx).to(torch.int64).clamp_(max=height - 1)
+    T = idx.numel()
+    vert = (b * V).repeat(3) + faces.index_select(0, f).T.reshape(-1)  # corner-major [3T]
+    p = uvz.reshape(nb * V, 3).index_select(0, vert).T.reshape(3, 3, T)
+    x, y = p[0], p[1]  # [corner, T]
+    xj, yj = x.roll(-1, dims=0), y.roll(-1, dims=0)  # start of edge j -> k: 1 -> 2, 2 -> 0, 0 -> 1
+    dx, dy = x.roll(-2, dims=0) - xj, y.roll(-2, dims=0) - yj  # [3, T]
+    area2 = dx[2] * (y[2] - y[0]) - dy[2] * (x[2] - x[0])  # twice the signed area
+    ok = area2.abs() > 1e-9
+    if cull_back_faces:
+        ok &= area2 < 0
+    sel = ok.nonzero().squeeze(1)
+    if sel.numel() == 0:
+        return None
+    if sel.numel() < 0.9 * T:  # drop many (back faces); give a few (degenerate) no rows
+        b, f, row0, row1 = (a.index_select(0, sel) for a in (b, f, row0, row1))
+        xj, yj, dx, dy, p = (a.index_select(-1, sel) for a in (xj, yj, dx, dy, p))
+        area2 = area2.index_select(0, sel)
+    elif sel.numel() < T:
+        row1 = torch.where(ok, row1, row0 - 1)
+    edges = _edge_table(xj, yj, dx, dy, area2, row0)
+    depth = None
     if with_depth:
-        inv_z = 1.0 / p[:, 2]  # 1/z is affine in screen space: sum_i l_i / z_i
-        parts += [(c * inv_z).sum(dim=1, keepdim=True) for c in parts]
-    coef = torch.cat(parts, dim=1).to(torch.float32)
-    first, last = first.to(torch.int64), last.to(torch.int64)
-    box_w = last[:, 0] - first[:, 0] + 1
-    count = box_w * (last[:, 1] - first[:, 1] + 1)
-    origin = ((b + first_view) * height + first[:, 1]) * width + first[:, 0]
-    return _Triangles(origin, box_w, count, coef, f)
+        # 1/z = sum_i l_i / z_i with barycentrics l_i = E_i / (2·area): affine in (u, v)
+        w = 1.0 / (p[2] * area2)  # [3, T]
+        d_du = -(dy * w).sum(dim=0)
+        d_dv = (dx * w).sum(dim=0)
+        depth = torch.stack([p[0, 0], p[1, 0], 1.0 / p[2, 0], d_du, d_dv], dim=1)
+    return _Triangles(b + first_view, f, row0, row1 - row0 + 1, edges, depth)
 
 
-def _pair_chunks(
-    count: torch.Tensor, box_w: torch.Tensor
-) -> Iterator[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
-    """Yield (triangle index, du, dv) over every pixel of every triangle's box, at most
-    :data:`PAIR_CHUNK` pairs at a time (a larger box forms its own chunk); du, dv are float32."""
+def _span_chunks(tris: _Triangles, width: int) -> Iterator[_Spans]:
+    """Non-empty spans of every row of every triangle, at most :data:`PAIR_CHUNK` rows at a
+    time (a triangle with more rows forms its own chunk)."""
+    for t, dv in _pixel_chunks(tris.rows):
+        e = tris.edges.index_select(0, t)
+        dv_f = dv.to(e.dtype)[:, None]
+        left = (e[:, 0:3] + e[:, 3:6] * dv_f).amax(dim=1)
+        right = (e[:, 6:9] + e[:, 9:12] * dv_f).amin(dim=1)
+        row = tris.row0.index_select(0, t) + dv
+        u0 = torch.ceil(left.clamp(-1.0, width)).to(torch.int64).clamp_(min=0)
+        u1 = torch.floor(right.clamp(-1.0, width)).to(torch.int64).clamp_(max=width - 1)
+        keep = (u0 <= u1).nonzero().squeeze(1)
+        if keep.numel():
+            yield _Spans(t[keep], row[keep], u0[keep], u1[keep])
+
+
+def _edge_table(
+    xj: torch.Tensor,
+    yj: torch.Tensor,
+    dx: torch.Tensor,
+    dy: torch.Tensor,
+    area2: torch.Tensor,
+    row0: torch.Tensor,
+) -> torch.Tensor:
+    """[T, 12] per-triangle table of the bounds of the spans, in pixels: (left u at ``row0``
+    [3], left du/dv [3], right u at ``row0`` [3], right du/dv [3]) of the edges j -> k starting
+    at (xj, yj) [3, T] with extent (dx, dy) [3, T], so that a row ``row0 + dv`` spans
+    ``max(left + dv·dleft) <= u <= min(right + dv·dright)``.
+
+    A centre is inside edge j -> k iff E = dx·(v - yj) - dy·(u - xj) has the sign of the
+    doubled area ``area2``: the edge's u at row v, xj + dx/dy·(v - yj), bounds the span on the
+    left where dy·area2 < 0 and on the right where dy·area2 > 0. Horizontal edges bound no
+    span (the rows already stop at the triangle's top and bottom); unused slots hold -inf on
+    the left, +inf on the right, with slope 0.
+    """
+    flat = dy == 0
+    slope = torch.where(flat, torch.zeros_like(dx), dx / torch.where(flat, 1.0, dy))
+    start = xj + slope * (row0.to(xj.dtype) - yj)
+    turn = dy * area2
+    zero = torch.zeros_like(start)
+    return torch.cat(
+        [
+            torch.where(turn < 0, start, -torch.inf),
+            torch.where(turn < 0, slope, zero),
+            torch.where(turn > 0, start, torch.inf),
+            torch.where(turn > 0, slope, zero),
+        ],
+        dim=0,
+    ).T.contiguous()
+
+
+def _pixel_chunks(count: torch.Tensor) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+    """Yield (item index, offset within the item) over ``count[i]`` offsets of every item i,
+    at most :data:`PAIR_CHUNK` at a time (a larger item forms its own chunk); int64."""
     cum = count.cumsum(0)
-    starts = cum - count  # pair index of each triangle's first pixel
-    T = count.numel()
+    starts = cum - count  # flat index of each item's first offset
+    n = count.numel()
     start, done = 0, 0
-    while start < T:
+    while start < n:
         end = max(int(torch.searchsorted(cum, done + PAIR_CHUNK, right=True)), start + 1)
-        cnt = count[start:end]
         total = int(cum[end - 1])
-        t = torch.repeat_interleave(
-            torch.arange(start, end, device=count.device), cnt, output_size=total - done
-        )
-        local = torch.arange(done, total, device=count.device) - starts[t]
-        w = box_w[t]
-        dv = torch.div(local, w, rounding_mode="floor")
-        du = local - dv * w
-        yield t, du.to(torch.float32), dv.to(torch.float32)
+        if total > done:
+            i = torch.repeat_interleave(
+                torch.arange(start, end, device=count.device),
+                count[start:end],
+                output_size=total - done,
+            )
+            yield i, torch.arange(done, total, device=count.device) - starts[i]
         done, start = total, end

@@ -460,17 +460,14 @@ def _views(
     cull: bool,
 ) -> list[Surface]:
     """One mesh (world frame) rasterised in all cameras at once: a :class:`Surface` per view.
-    With ``cull`` only faces facing a camera are rasterised (half the work, same image for
-    closed meshes)."""
+    With ``cull`` each view skips its back faces (half the work, same image for closed
+    meshes)."""
     normals = vertex_normals(verts_world, faces)
     Ts = [torch.as_tensor(cam.T_cam_world, dtype=torch.float32) for cam in cameras]
-    if cull:
-        eyes = torch.stack([-T[:3, :3].T @ T[:3, 3] for T in Ts])
-        faces = faces[front_faces(verts_world, faces, eyes)]
     verts = torch.stack([verts_world @ T[:3, :3].T + T[:3, 3] for T in Ts])
     Ks = torch.stack([torch.as_tensor(cam.K, dtype=torch.float32) for cam in cameras])
     H, W = cameras[0].static_depth.shape
-    r = rasterize(verts, faces, Ks, H, W)
+    r = rasterize(verts, faces, Ks, H, W, cull_back_faces=cull)
     return [
         Surface(verts[c], normals @ Ts[c][:3, :3].T, faces, albedo, r.depth[c], r.face_id[c])
         for c in range(len(cameras))
