@@ -2,7 +2,6 @@
 #   make test       run the test suite
 #   make train      the main job on its embedded default: simulate → annotate → train → IoU → export
 #   make bench      every benchmark in bench/ (prints measured ratios side by side)
-#   make reproduce  the paper's whole chain on a simulated study (see README)
 #   make lint       ruff
 
 SHELL := /bin/bash
@@ -13,7 +12,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.roboseg-installed
 OUT ?= outputs/default
 
-.PHONY: test train bench reproduce lint env clean
+.PHONY: test train bench lint env clean
 
 env: $(STAMP)
 
@@ -39,9 +38,6 @@ bench: $(STAMP)
 
 train: $(STAMP)
 	$(PY) -m roboseg.pipeline out=$(OUT)
-
-reproduce: $(STAMP)
-	$(PY) -m roboseg.reproduce
 
 clean:
 	rm -rf outputs multirun .pytest_cache .ruff_cache

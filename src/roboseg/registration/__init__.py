@@ -2,19 +2,27 @@
 
 ``T_cam_base`` (base frame → left OpenCV optical frame, metres) is the unknown; the right camera
 follows through the fixed ``T_right_left``. :func:`cso` initialises it by a swarm of virtual
-cameras, :func:`sdr` / :func:`sdr_multistart` refine it by stereo differentiable rendering.
+cameras, :func:`sdr` / :func:`sdr_multistart` refine it by stereo differentiable rendering;
+:func:`sdr_with_prior` alternates a 4-channel segmentation (prior = render at the estimate) with
+SDR; :func:`register` drives it all on a recording.
 """
 
 from roboseg.registration.cso import Candidate, CSOConfig, CSOResult, cso
 from roboseg.registration.losses import RegistrationTarget, distance_mse_loss, exp_dice_loss
 from roboseg.registration.pose import look_at_T_cam_base, matrix_to_pose9d, pose9d_to_matrix
+from roboseg.registration.register import RegisterConfig, Registration, register
 from roboseg.registration.sdr import RegistrationResult, SDRConfig, sdr, sdr_multistart
+from roboseg.registration.sdr_prior import PriorConfig, PriorResult, sdr_with_prior
 from roboseg.registration.views import View, stereo_views
 
 __all__ = [
     "CSOConfig",
     "CSOResult",
     "Candidate",
+    "PriorConfig",
+    "PriorResult",
+    "RegisterConfig",
+    "Registration",
     "RegistrationResult",
     "RegistrationTarget",
     "SDRConfig",
@@ -25,7 +33,9 @@ __all__ = [
     "look_at_T_cam_base",
     "matrix_to_pose9d",
     "pose9d_to_matrix",
+    "register",
     "sdr",
     "sdr_multistart",
+    "sdr_with_prior",
     "stereo_views",
 ]

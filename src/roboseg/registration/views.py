@@ -18,7 +18,16 @@ from roboseg.camera import StereoRig
 from roboseg.errors import CameraError
 from roboseg.registration.pose import transform_points
 
-__all__ = ["View", "stereo_views", "views_at_resolution", "vertices_in_view", "resize_masks"]
+__all__ = [
+    "View",
+    "stereo_views",
+    "views_at_resolution",
+    "vertices_in_view",
+    "resize_masks",
+    "crop_to_masks",
+    "views_scaled",
+    "views_for_width",
+]
 
 
 @dataclass(frozen=True)
@@ -91,3 +100,45 @@ def resize_masks(masks: np.ndarray | torch.Tensor, width: int, height: int) -> n
     if m.shape[1:] == (height, width):
         return m > 0.5
     return np.stack([cv2.resize(x, (width, height), interpolation=cv2.INTER_AREA) for x in m]) > 0.5
+
+
+def crop_to_masks(
+    views: Sequence[View], masks: Sequence[np.ndarray], margin: float = 0.3
+) -> tuple[list[View], list[np.ndarray]]:
+    """Each view and its masks ``[C, H, W]`` cropped to the bounding box of the union of its
+    masks, grown by ``margin`` × box size per side and clipped to the image (the intrinsics
+    shift by the crop origin: cx − tx, cy − ty). A view whose masks are all empty is kept whole.
+    """
+    out_views, out_masks = [], []
+    for view, m in zip(views, masks, strict=True):
+        m = np.asarray(m, dtype=bool)
+        rows, cols = np.flatnonzero(m.any(axis=(0, 2))), np.flatnonzero(m.any(axis=(0, 1)))
+        if len(rows) == 0:
+            out_views.append(view)
+            out_masks.append(m)
+            continue
+        y0, y1, x0, x1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+        gy, gx = round(margin * (y1 - y0)), round(margin * (x1 - x0))
+        y0, y1 = max(0, y0 - gy), min(view.height, y1 + gy)
+        x0, x1 = max(0, x0 - gx), min(view.width, x1 + gx)
+        y1, x1 = max(y1, min(view.height, y0 + 2)), max(x1, min(view.width, x0 + 2))
+        K = view.K.clone()
+        K[0, 2], K[1, 2] = K[0, 2] - x0, K[1, 2] - y0
+        out_views.append(View(view.name, K, int(x1 - x0), int(y1 - y0), view.T_view_left))
+        out_masks.append(m[:, y0:y1, x0:x1])
+    return out_views, out_masks
+
+
+def views_scaled(views: Sequence[View], scale: float) -> list[View]:
+    """Every view resized by ``scale`` (sizes rounded, at least 2 px)."""
+    return [
+        v.resized(max(2, round(v.width * scale)), max(2, round(v.height * scale))) for v in views
+    ]
+
+
+def views_for_width(views: Sequence[View], width: int | None) -> list[View]:
+    """Views scaled alike so that the widest is at most ``width`` px (None: unchanged)."""
+    widest = max(v.width for v in views)
+    if width is None or widest <= width:
+        return list(views)
+    return views_scaled(views, width / widest)

@@ -1,0 +1,443 @@
+"""Localisation benchmark: registration accuracy, swarm basin and run time on simulated recordings.
+
+Simulated stereo recordings (~1.5 m camera distance) with known ground truth; the truth
+``T_cam_base`` is read from ``/tf_static`` *only here*, for scoring. Monte-Carlo
+cross-validation as in the paper: per camera pose, ``--subsets`` random subsets of 3/6/9/12
+configurations register the robot, and the errors are measured on the complementary
+configurations: tool-centre error (origin of the last frame in ``frame_names``) and per-link
+errors (origin of every frame L0…EE transformed by the estimate vs the truth), in mm.
+
+Mask conditions: (a) ground-truth masks, (b) masks degraded to IoU ≈ 0.73 (erode/dilate + blobs,
+achieved IoU printed), (c) ``--model`` on draped frames, SDR vs SDR with prior (4-channel model).
+The swarm runs once per camera pose (on 4 configurations of the first subset of the largest size);
+each subset is then refined by multi-start SDR from its candidates. Separately, the swarm
+initialisation is checked on ``--placements`` random camera placements (synthetic renders), and
+one full registration (swarm + SDR [+ prior], 9 configurations) is timed.
+
+    python bench/localisation.py --quick            # ~minutes on 2 busy cores
+    python bench/localisation.py --model outputs/default/model.onnx
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench.common import format_table, verdict  # noqa: E402
+from roboseg.camera import Intrinsics, StereoRig, look_at  # noqa: E402
+from roboseg.recording import RecordingReader  # noqa: E402
+from roboseg.registration.cso import CSOConfig, cso  # noqa: E402
+from roboseg.registration.register import RegisterConfig, register  # noqa: E402
+from roboseg.registration.sdr import SDRConfig, sdr, sdr_multistart  # noqa: E402
+from roboseg.registration.views import (  # noqa: E402
+    crop_to_masks,
+    stereo_views,
+    vertices_in_view,
+    views_for_width,
+)
+from roboseg.render.raster import render_hard  # noqa: E402
+from roboseg.robot import RobotModel, load_robot  # noqa: E402
+
+log = logging.getLogger("bench.localisation")
+LEFT = "camera_left_optical_frame"
+SIZES = (3, 6, 9, 12)
+
+
+# --------------------------------------------------------------------------------------------
+# maths
+
+
+def frame_errors_mm(
+    robot: RobotModel, q: np.ndarray, T_est: np.ndarray, T_true: np.ndarray
+) -> np.ndarray:
+    """``[N, F]`` distances (mm) between every frame origin of ``robot`` at joints ``q`` [N, D]
+    mapped into the camera by ``T_est`` and by ``T_true`` (both base → left optical)."""
+    T_bf = robot.frame_transforms(torch.as_tensor(q, dtype=torch.float64).to(robot.dtype))
+    p = T_bf[..., :3, 3].double().numpy()  # [N, F, 3] base frame
+    d = p @ (T_est[:3, :3] - T_true[:3, :3]).T + (T_est[:3, 3] - T_true[:3, 3])
+    return 1000.0 * np.linalg.norm(d, axis=-1)
+
+
+def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
+    union = np.count_nonzero(a | b)
+    return 1.0 if union == 0 else np.count_nonzero(a & b) / union
+
+
+def degrade(mask: np.ndarray, strength: float, rng: np.random.Generator) -> np.ndarray:
+    """``mask`` eroded or dilated by ``strength`` px, with blobs of radius ~``strength`` px
+    added along the outside and removed along the inside of the boundary."""
+    m = mask.astype(np.uint8)
+    r = max(1, int(round(strength)))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    out = cv2.dilate(m, kernel) if rng.random() < 0.5 else cv2.erode(m, kernel)
+    edge = np.argwhere(cv2.morphologyEx(m, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0)
+    if len(edge):
+        for y, x in edge[rng.integers(0, len(edge), 6)]:
+            radius = int(max(1, rng.uniform(0.5, 1.5) * strength))
+            cv2.circle(out, (int(x), int(y)), radius, int(rng.random() < 0.5), -1)
+    return out > 0
+
+
+def degrade_to_iou(
+    mask: np.ndarray, target: float, rng: np.random.Generator
+) -> tuple[np.ndarray, float]:
+    """Degraded ``mask`` whose IoU with it is near ``target`` (bisection on the strength)."""
+    if not mask.any():
+        return mask.copy(), 1.0
+    lo, hi = 0.3, 40.0
+    best = (mask.copy(), 1.0)
+    seed = int(rng.integers(1 << 31))
+    for _ in range(10):
+        mid = 0.5 * (lo + hi)
+        out = degrade(mask, mid, np.random.default_rng(seed))
+        value = mask_iou(out, mask)
+        if abs(value - target) < abs(best[1] - target):
+            best = (out, value)
+        lo, hi = (mid, hi) if value > target else (lo, mid)
+    return best
+
+
+# --------------------------------------------------------------------------------------------
+# data
+
+
+def load_pose(path: Path, robot: RobotModel) -> dict[str, Any]:
+    """Joints, images, gt masks, views and the truth (scoring only) of one recording."""
+    with RecordingReader(
+        path, mask_topics=["left/robot_mask_gt", "right/robot_mask_gt"], robots=["robot_0"]
+    ) as r:
+        frames = list(r.frames())
+        calib = r.camera_calib()
+        T_true = r.lookup(LEFT, f"robot_0/{robot.root_link}")
+        drape = int(r.metadata()["roboseg_sim"]["drape_start_stamp_ns"])
+    rig = StereoRig(
+        Intrinsics.from_K(calib.left.K, calib.left.width, calib.left.height),
+        Intrinsics.from_K(calib.right.K, calib.right.width, calib.right.height),
+        calib.T_right_left,
+    )
+    return {
+        "path": path,
+        "q": np.stack([f.joints["robot_0"] for f in frames]),
+        "stamps": np.array([f.stamp_ns for f in frames]),
+        "draped": np.array([f.stamp_ns >= drape for f in frames]),
+        "masks": [
+            np.stack([f.masks[f"{s}/robot_mask_gt"] for f in frames]) for s in ("left", "right")
+        ],
+        "views": stereo_views(rig),
+        "T_true": T_true,
+    }
+
+
+def simulate(folder: Path, n: int, frames: int, width: int, height: int) -> list[Path]:
+    from roboseg.sim import SimConfig, simulate_recording
+
+    paths = []
+    for i in range(n):
+        path = folder / f"pose_{i:02d}.mcap"
+        cfg = SimConfig(
+            frames=frames, seed=100 + i, width=width, height=height, distance=(1.4, 1.6)
+        )
+        simulate_recording(cfg, path)
+        paths.append(path)
+    return paths
+
+
+# --------------------------------------------------------------------------------------------
+# cross-validation
+
+
+def swarm_config(args: argparse.Namespace) -> CSOConfig:
+    """The swarm for a camera ~1.5 m from the robot, mounted upright (roll within ±0.6 rad)."""
+    return CSOConfig(
+        n_particles=args.particles,
+        iterations=args.swarm_iterations,
+        width=48,
+        r_min=1.0,
+        r_max=2.5,
+        centre_radius=0.3,
+        roll_range=0.6,
+    )
+
+
+def cross_validate(
+    pose: dict[str, Any],
+    masks: list[np.ndarray],
+    robot: RobotModel,
+    coarse: RobotModel,
+    args: argparse.Namespace,
+    rng: np.random.Generator,
+) -> dict[int, list[np.ndarray]]:
+    """``{k: [per-subset [N_held, F] errors (mm)]}`` for each subset size ``k``."""
+    n = len(pose["q"])
+    sizes = [k for k in args.sizes if k < n]
+    subsets = {k: [rng.choice(n, k, replace=False) for _ in range(args.subsets)] for k in sizes}
+    views, width = pose["views"], args.width
+    first = subsets[max(sizes)][0][:4]
+    q_first = torch.as_tensor(pose["q"][first], dtype=robot.dtype)
+    roi, roi_masks = crop_to_masks(views, [m[first] for m in masks])
+    cso_cfg = swarm_config(args)
+    found = cso(coarse.posed_vertices(q_first), coarse.faces, roi, roi_masks, cso_cfg)
+    starts = [c.T_cam_base for c in found.candidates]
+    sdr_cfg = SDRConfig(max_iterations=args.iterations, lr=4e-3)
+    out: dict[int, list[np.ndarray]] = {}
+    for k, chosen in subsets.items():
+        out[k] = []
+        for idx in chosen:
+            verts = robot.posed_vertices(torch.as_tensor(pose["q"][idx], dtype=robot.dtype))
+            roi, sub = crop_to_masks(views, [m[idx] for m in masks])
+            coarse_views = views_for_width(roi, width // 2)
+            res = sdr_multistart(verts, robot.faces, coarse_views, sub, starts, sdr_cfg)
+            fine = views_for_width(roi, width)
+            res = sdr(verts, robot.faces, fine, sub, res.T_cam_base, sdr_cfg)
+            held = np.setdiff1d(np.arange(n), idx)
+            err = frame_errors_mm(robot, pose["q"][held], res.T_cam_base, pose["T_true"])
+            out[k].append(err)
+            log.info(
+                "%s k=%d: tool-centre median %.2f mm", pose["path"].name, k, np.median(err[:, -1])
+            )
+    return out
+
+
+def summarise(name: str, errors: dict[int, list[np.ndarray]], frame_names: list[str]) -> list[list]:
+    rows = []
+    for k, errs in sorted(errors.items()):
+        e = np.concatenate(errs)  # [N, F]
+        tool = e[:, -1]
+        q1, med, q3 = np.percentile(tool, [25, 50, 75])
+        links = " ".join(f"{np.median(e[:, i]):.1f}" for i in range(e.shape[1]))
+        rows.append([name, k, len(errs), float(med), float(q1), float(q3), links])
+    return rows
+
+
+# --------------------------------------------------------------------------------------------
+# swarm basin on synthetic renders
+
+
+def basin_check(robot: RobotModel, coarse: RobotModel, args: argparse.Namespace) -> list[bool]:
+    """For random camera placements ~1.5 m away: CSO then SDR; True when SDR reaches the truth
+    (< 5 mm, < 0.5°), i.e. the swarm started it inside the refinement basin."""
+    rng = np.random.default_rng(7)
+    rig = StereoRig.zed2i_like(args.sim_width, args.sim_height)
+    views = stereo_views(rig)
+    ok = []
+    for p in range(args.placements):
+        q = robot.random_joints(6, torch.Generator().manual_seed(p))
+        az, el = rng.uniform(-math.pi, math.pi), rng.uniform(math.radians(15), math.radians(55))
+        target = np.array([0.1, 0.0, 0.45]) + rng.normal(0, 0.08, 3)
+        eye = target + 1.5 * np.array(
+            [math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), math.sin(el)]
+        )
+        T_true = torch.as_tensor(np.asarray(look_at(eye, target)), dtype=torch.float32)
+        verts = robot.posed_vertices(q)
+        masks = [
+            render_hard(vertices_in_view(T_true, v, verts), robot.faces, v.K, v.height, v.width)
+            for v in views
+        ]
+        cfg = replace(swarm_config(args), seed=p)
+        roi, roi_masks = crop_to_masks(views, [m.numpy() for m in masks])
+        found = cso(
+            coarse.posed_vertices(q[:4]), coarse.faces, roi, [m[:4] for m in roi_masks], cfg
+        )
+        res = sdr_multistart(
+            verts,
+            robot.faces,
+            views_for_width(roi, args.width),
+            roi_masks,
+            [c.T_cam_base for c in found.candidates],
+            SDRConfig(max_iterations=args.iterations, lr=4e-3),
+        )
+        T = res.T_cam_base
+        dt = 1000 * float(np.linalg.norm(T[:3, 3] - T_true[:3, 3].double().numpy()))
+        R = T[:3, :3].T @ T_true[:3, :3].double().numpy()
+        dr = math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(R) - 1) / 2))))
+        ok.append(dt < 5.0 and dr < 0.5)
+        log.info("placement %d: CSO IoU %.3f, SDR %.1f mm %.2f°", p, found.best.fitness, dt, dr)
+    return ok
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def plot(results: dict[str, dict[int, list[np.ndarray]]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(results), figsize=(4 * len(results), 3.5), squeeze=False)
+    for ax, (name, errors) in zip(axes[0], results.items(), strict=True):
+        ks = sorted(errors)
+        ax.boxplot([np.concatenate(errors[k])[:, -1] for k in ks], showfliers=False)
+        ax.set_xticks(range(1, len(ks) + 1), [str(k) for k in ks])
+        ax.set_xlabel("stereo configurations")
+        ax.set_ylabel("tool-centre error (mm)")
+        ax.set_title(name)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="1 pose, sizes 3 and 12, 2 subsets")
+    p.add_argument("--model", type=Path, default=Path("outputs/default/model.onnx"))
+    p.add_argument("--poses", type=int, default=3)
+    p.add_argument("--frames", type=int, default=40)
+    p.add_argument("--subsets", type=int, default=5)
+    p.add_argument("--sizes", type=int, nargs="+", default=list(SIZES))
+    p.add_argument("--placements", type=int, default=20)
+    p.add_argument("--sim-width", type=int, default=320)
+    p.add_argument("--sim-height", type=int, default=180)
+    p.add_argument("--width", type=int, default=320, help="SDR render width (px)")
+    p.add_argument("--particles", type=int, default=1000)
+    p.add_argument("--swarm-iterations", type=int, default=20)
+    p.add_argument("--iterations", type=int, default=250)
+    p.add_argument("--out", type=Path, default=Path("outputs/bench_localisation"))
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.quick:
+        args.poses, args.subsets, args.sizes, args.placements = 1, 2, [3, 12], 4
+        args.frames, args.swarm_iterations = 30, 15
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    torch.set_num_threads(1)
+    args.out.mkdir(parents=True, exist_ok=True)
+    robot = load_robot(None)
+    coarse = robot.decimated(0.98)
+    rng = np.random.default_rng(0)
+    lines: list[str] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        paths = simulate(Path(tmp), args.poses, args.frames, args.sim_width, args.sim_height)
+        poses = [load_pose(p, robot) for p in paths]
+        results: dict[str, dict[int, list[np.ndarray]]] = {"(a) gt masks": {}, "(b) degraded": {}}
+        achieved = []
+        for pose in poses:
+            degraded = []
+            for m in pose["masks"]:
+                pairs = [degrade_to_iou(x, 0.73, rng) for x in m]
+                degraded.append(np.stack([d for d, _ in pairs]))
+                achieved += [v for _, v in pairs]
+            for name, masks in (("(a) gt masks", pose["masks"]), ("(b) degraded", degraded)):
+                for k, errs in cross_validate(pose, masks, robot, coarse, args, rng).items():
+                    results[name].setdefault(k, []).extend(errs)
+        rows = []
+        for name, errors in results.items():
+            rows += summarise(name, errors, robot.frame_names)
+        print(
+            f"degraded masks: achieved IoU median {np.median(achieved):.3f} "
+            f"(Q1 {np.percentile(achieved, 25):.3f}, Q3 {np.percentile(achieved, 75):.3f})"
+        )
+        model_rows = model_condition(poses, robot, args)
+        rows += model_rows
+        print(f"per-link medians (mm) in order {' '.join(robot.frame_names)}")
+        print(
+            format_table(
+                ["masks", "configs", "subsets", "tool med", "Q1", "Q3", "per-link med"], rows
+            )
+        )
+        plot(results, args.out / "localisation.png")
+        print(f"plot: {args.out / 'localisation.png'}")
+        twelve = results["(a) gt masks"].get(max(args.sizes))
+        if twelve:
+            med = float(np.median(np.concatenate(twelve)[:, -1]))
+            lines.append(
+                verdict(f"(a) median tool-centre error, {max(args.sizes)} configs", med, 1.0, "mm")
+            )
+        ok = basin_check(robot, coarse, args)
+        share = 100.0 * sum(ok) / max(1, len(ok))
+        status = "PASS" if share >= 95 else "FAIL"
+        lines.append(
+            f"{status}  swarm inside refinement basin: {sum(ok)}/{len(ok)} placements = "
+            f"{share:.0f} % (target >= 95 %)"
+        )
+        seconds = time_full_registration(poses[0]["path"], robot, args)
+        lines.append(
+            verdict("whole registration (swarm + SDR [+prior], 9 configs)", seconds, 300.0, "s")
+        )
+    print("\n".join(lines))
+    print("timings are wall-clock on a shared, loaded machine (noisy)")
+    return 0
+
+
+def model_condition(
+    poses: list[dict[str, Any]], robot: RobotModel, args: argparse.Namespace
+) -> list[list]:
+    """(c) the trained model on draped frames: SDR vs SDR with prior, one spread selection per
+    size, errors on the remaining frames."""
+    if not args.model.is_file():
+        print(f"(c) skipped: no model at {args.model} (run `make train` or pass --model)")
+        return []
+    from roboseg.segmentor import OnnxSegmentor
+
+    seg = OnnxSegmentor(args.model, threads=1)
+    methods = ["sdr", "sdr_prior"] if seg.in_channels == 4 else ["sdr"]
+    if seg.in_channels != 4:
+        print("(c) 3-channel model: SDR with prior not run (the prior needs a 4-channel model)")
+    rows = []
+    for method in methods:
+        errors: dict[int, list[np.ndarray]] = {}
+        for pose in poses:
+            for k in args.sizes:
+                cfg = RegisterConfig(
+                    configs=k,
+                    phase="draped",
+                    method=method,
+                    width=args.width,
+                    cso=swarm_config(args),
+                    sdr=SDRConfig(max_iterations=args.iterations, lr=4e-3),
+                )
+                try:
+                    reg = register(pose["path"], robot, segmentor=seg, config=cfg)
+                except Exception as exc:  # noqa: BLE001 - report and go on
+                    print(f"(c) {method} k={k} {pose['path'].name}: {exc}")
+                    continue
+                used = {c.stamp_ns for c in reg.configurations}
+                held = np.array([s not in used for s in pose["stamps"]])
+                errors.setdefault(k, []).append(
+                    frame_errors_mm(robot, pose["q"][held], reg.T_cam_base, pose["T_true"])
+                )
+        rows += summarise(f"(c) model {method}", errors, robot.frame_names)
+    return rows
+
+
+def time_full_registration(path: Path, robot: RobotModel, args: argparse.Namespace) -> float:
+    """Wall-clock seconds of :func:`register` with 9 configurations and the default settings
+    (SDR with prior when a 4-channel model is present, else SDR on ground-truth masks)."""
+    cfg = RegisterConfig(
+        configs=9, width=args.width, cso=replace(swarm_config(args), iterations=20)
+    )
+    if args.model.is_file():
+        from roboseg.segmentor import OnnxSegmentor
+
+        seg = OnnxSegmentor(args.model, threads=1)
+        method = "sdr_prior" if seg.in_channels == 4 else "sdr"
+        t = time.perf_counter()
+        register(path, robot, segmentor=seg, config=replace(cfg, method=method))
+        return time.perf_counter() - t
+    gt = {}
+    with RecordingReader(path, mask_topics=["left/robot_mask_gt", "right/robot_mask_gt"]) as r:
+        for f in r.frames():
+            gt[f.stamp_ns] = (f.masks["left/robot_mask_gt"], f.masks["right/robot_mask_gt"])
+    t = time.perf_counter()
+    register(path, robot, masks=lambda f: gt[f.stamp_ns], config=replace(cfg, method="sdr"))
+    print("timed SDR on ground-truth masks (no model: SDR with prior not timed)")
+    return time.perf_counter() - t
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

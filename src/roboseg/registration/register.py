@@ -1,0 +1,425 @@
+"""Register a robot in a stereo recording: select configurations, segment, CSO → SDR → SDR+prior.
+
+Reads only the stereo images, CameraInfo, the left↔right transform from ``/tf_static``, joint
+states and the ``roboseg_sim`` metadata (drape stamp, for ``phase``); never ground-truth mask
+topics nor robot-base transforms. The result ``T_cam_base`` maps base-frame points into the left
+OpenCV optical frame (metres).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+
+from roboseg.camera import Intrinsics, StereoRig
+from roboseg.errors import CameraError, RecordingError, RobotModelError
+from roboseg.recording import RecordingReader, StereoFrame
+from roboseg.registration.cso import CSOConfig, cso
+from roboseg.registration.sdr import RegistrationResult, SDRConfig, sdr, sdr_multistart
+from roboseg.registration.sdr_prior import PriorConfig, PriorResult, sdr_with_prior
+from roboseg.registration.views import View, crop_to_masks, stereo_views, views_for_width
+from roboseg.robot import RobotModel
+
+__all__ = [
+    "Phase",
+    "Method",
+    "MaskSource",
+    "RegisterConfig",
+    "Configuration",
+    "Registration",
+    "spread_configurations",
+    "phase_window",
+    "register",
+]
+
+log = logging.getLogger(__name__)
+
+Phase = Literal["undraped", "draped", "all"]
+Method = Literal["sdr", "sdr_prior"]
+#: ``masks(frame) -> (left [H, W] bool, right [H, W] bool)``: segmentations given by the caller.
+MaskSource = Callable[[StereoFrame], tuple[np.ndarray, np.ndarray]]
+SIM_METADATA = "roboseg_sim"
+
+
+@dataclass(frozen=True)
+class RegisterConfig:
+    """What to register on and how.
+
+    ``configs`` stereo configurations spread over joint space among the frames of ``phase``
+    (``undraped``/``draped`` need the ``roboseg_sim`` metadata) within ``[start_ns, stop_ns)``;
+    ``robot`` the namespace whose joints are used (None: the only/first one). Frames whose mask
+    covers less than ``min_mask_fraction`` of either image are dropped. Everything is fitted in
+    the region of interest: the masks' bounding box grown by ``roi_margin`` per side. CSO scores
+    the first ``cso_configs`` (most spread) configurations with the mesh decimated by
+    ``cso_reduction``; multi-start SDR from its candidates renders at most ``coarse_width`` px
+    wide (None: ``width``), then the best start is refined at most ``width`` px wide with the
+    mesh decimated by ``sdr_reduction`` (decimation biases SDR by millimetres). A result whose
+    mean IoU is below
+    ``min_iou`` is reported as a poor fit.
+    """
+
+    configs: int = 9
+    phase: Phase = "all"
+    start_ns: int | None = None
+    stop_ns: int | None = None
+    robot: str | None = None
+    method: Method = "sdr_prior"
+    width: int = 320
+    coarse_width: int | None = 160
+    cso_configs: int = 4
+    roi_margin: float = 0.3
+    cso_reduction: float = 0.98
+    sdr_reduction: float = 0.0
+    min_mask_fraction: float = 0.002
+    min_iou: float = 0.5
+    cso: CSOConfig = field(
+        default_factory=lambda: CSOConfig(n_particles=1000, iterations=20, width=48)
+    )
+    sdr: SDRConfig = field(default_factory=lambda: SDRConfig(max_iterations=200))
+    prior: PriorConfig = field(default_factory=PriorConfig)
+
+    def __post_init__(self) -> None:
+        if self.configs < 1:
+            raise CameraError(f"configs must be >= 1, got {self.configs}")
+        if self.phase not in ("undraped", "draped", "all"):
+            raise RecordingError(f"phase must be undraped, draped or all, got {self.phase!r}")
+        if self.method not in ("sdr", "sdr_prior"):
+            raise CameraError(f"method must be sdr or sdr_prior, got {self.method!r}")
+
+
+@dataclass(frozen=True)
+class Configuration:
+    """A frame used for registration: recording index, stamp (ns), joints (rad/m, URDF order)."""
+
+    index: int
+    stamp_ns: int
+    joints: np.ndarray
+
+
+@dataclass
+class Registration:
+    """Outcome of :func:`register`.
+
+    ``T_cam_base`` [4, 4]: base frame → left optical frame (metres) of the final method;
+    ``result`` that method's :class:`RegistrationResult`; ``sdr`` the plain SDR result;
+    ``prior`` the SDR-with-prior result (None for method ``sdr``); ``dropped`` one line per frame
+    or problem left out; ``images``/``masks`` per view ``[C, H, W(, 3)]`` of the used frames.
+    """
+
+    T_cam_base: np.ndarray
+    method: Method
+    result: RegistrationResult
+    sdr: RegistrationResult
+    prior: PriorResult | None
+    configurations: list[Configuration]
+    camera_frame: str
+    base_frame: str
+    robot: str
+    robots_in_masks: list[str]
+    joint_names: list[str]
+    dropped: list[str]
+    warnings: list[str]
+    views: list[View]
+    images: list[np.ndarray]
+    masks: list[np.ndarray]
+    cso_fitness: float
+    seconds: dict[str, float]
+
+    @property
+    def converged(self) -> bool:
+        """False when SDR diverged or the fit is poor (see :attr:`warnings`)."""
+        return self.result.reason != "diverged" and not any(
+            w.startswith("poor fit") for w in self.warnings
+        )
+
+
+def spread_configurations(q: np.ndarray, n: int, scale: np.ndarray | None = None) -> list[int]:
+    """Indices of ``n`` rows of ``q`` [N, D] spread out over joint space (greedy farthest-point
+    order in joints divided by ``scale`` [D], e.g. the joint ranges; first the row farthest from
+    the mean). Returns all N indices in that order when ``n >= N``."""
+    q = np.asarray(q, dtype=np.float64)
+    if q.ndim != 2 or len(q) == 0:
+        return []
+    x = q / (np.ones(q.shape[1]) if scale is None else np.maximum(np.asarray(scale), 1e-9))
+    first = int(np.argmax(np.linalg.norm(x - x.mean(axis=0), axis=1)))
+    order = [first]
+    dist = np.linalg.norm(x - x[first], axis=1)
+    while len(order) < min(n, len(q)):
+        nxt = int(np.argmax(dist))
+        if dist[nxt] <= 0 and len(order) >= 1:  # only repeats left
+            rest = [i for i in range(len(q)) if i not in order]
+            order.extend(rest[: n - len(order)])
+            break
+        order.append(nxt)
+        dist = np.minimum(dist, np.linalg.norm(x - x[nxt], axis=1))
+    return order
+
+
+def phase_window(
+    metadata: dict[str, dict[str, str]],
+    phase: Phase,
+    start_ns: int | None = None,
+    stop_ns: int | None = None,
+    source: str = "recording",
+) -> tuple[int | None, int | None]:
+    """``[lo, hi)`` stamp window (ns, None = open) of ``phase`` intersected with start/stop.
+
+    ``undraped`` ends and ``draped`` begins at the ``roboseg_sim`` ``drape_start_stamp_ns``.
+    """
+    lo, hi = start_ns, stop_ns
+    if phase == "all":
+        return lo, hi
+    raw = metadata.get(SIM_METADATA, {}).get("drape_start_stamp_ns")
+    if raw is None:
+        raise RecordingError(
+            f"{source}: phase={phase} needs the {SIM_METADATA} metadata (drape_start_stamp_ns); "
+            "use phase=all with start/stop stamps instead"
+        )
+    drape = int(raw)
+    if drape < 0:  # simulated without a drape: all frames undraped
+        if phase == "draped":
+            raise RecordingError(f"{source}: phase=draped but the recording has no draped frames")
+        return lo, hi
+    if phase == "undraped":
+        return lo, drape if hi is None else min(hi, drape)
+    return (drape if lo is None else max(lo, drape)), hi
+
+
+def _views_from_recording(reader: RecordingReader) -> tuple[list[View], str]:
+    calib = reader.camera_calib()
+    if calib.T_right_left is None:
+        raise RecordingError(
+            f"{reader.path}: no transform between {calib.left.frame_id} and "
+            f"{calib.right.frame_id} on /tf_static (stereo calibration needed)"
+        )
+    rig = StereoRig(
+        Intrinsics.from_K(calib.left.K, calib.left.width, calib.left.height),
+        Intrinsics.from_K(calib.right.K, calib.right.width, calib.right.height),
+        calib.T_right_left,
+    )
+    return stereo_views(rig), calib.left.frame_id
+
+
+def _pick_robot(reader: RecordingReader, wanted: str | None) -> str:
+    robots = reader.robots
+    if not robots:
+        raise RecordingError(f"{reader.path}: no /<robot>/joint_states topic")
+    if wanted is None:
+        if len(robots) > 1:
+            log.warning(
+                "%s has robots %s; using %s (set robot=...)", reader.path, robots, robots[0]
+            )
+        return robots[0]
+    if wanted not in robots:
+        raise RecordingError(f"{reader.path}: robot={wanted} not found (robots: {robots})")
+    return wanted
+
+
+def _candidates(
+    reader: RecordingReader, robot: str, window: tuple[int | None, int | None]
+) -> tuple[list[Configuration], list[str]]:
+    """Frames (stereo pair and joints present) inside the stamp window, and what was skipped."""
+    lo, hi = window
+    found = []
+    for f in reader.frames(decode=False):
+        if (lo is None or f.stamp_ns >= lo) and (hi is None or f.stamp_ns < hi):
+            found.append(Configuration(f.index, f.stamp_ns, f.joints[robot].copy()))
+    st = reader.stats
+    dropped = []
+    if st.skipped_no_joint_state:
+        dropped.append(f"{st.skipped_no_joint_state} frames: no joint state within tolerance")
+    if st.skipped_unpaired:
+        dropped.append(f"{st.skipped_unpaired} frames: no matching right image")
+    if st.skipped_corrupt:
+        dropped.append(f"{st.skipped_corrupt} frames: unreadable")
+    return found, dropped
+
+
+def _segment_fn(segmentor: Any) -> Callable[[np.ndarray, np.ndarray | None], np.ndarray]:
+    def segment(images: np.ndarray, prior: np.ndarray | None) -> np.ndarray:
+        return segmentor.predict(images, prior) > segmentor.meta.threshold
+
+    return segment
+
+
+def register(
+    recording: str | Path,
+    robot_model: RobotModel,
+    *,
+    segmentor: Any | None = None,
+    masks: MaskSource | None = None,
+    config: RegisterConfig | None = None,
+) -> Registration:
+    """Register ``robot_model`` in the stereo camera of ``recording``.
+
+    Segmentations come from ``masks`` (given by the caller) or from ``segmentor`` (an
+    :class:`~roboseg.segmentor.OnnxSegmentor`; a 4-channel model gets a zero prior first).
+    Method ``sdr``: CSO then multi-start SDR; ``sdr_prior`` continues with SDR with the
+    in-context prior (needs ``segmentor``; only meaningful for a 4-channel model).
+    """
+    cfg = config or RegisterConfig()
+    if (segmentor is None) == (masks is None):
+        raise CameraError("register needs exactly one of a segmentation model or given masks")
+    if cfg.method == "sdr_prior" and segmentor is None:
+        raise CameraError("method=sdr_prior needs a segmentation model (model=PATH)")
+    warnings: list[str] = []
+    if cfg.method == "sdr_prior" and getattr(segmentor, "in_channels", 4) != 4:
+        warnings.append("the model has 3 input channels: the prior is ignored by sdr_prior")
+    seconds: dict[str, float] = {}
+    t0 = time.perf_counter()
+    path = Path(recording)
+    with RecordingReader(path, on_error="skip") as probe:
+        robot = _pick_robot(probe, cfg.robot)
+        robots_in_masks = probe.robots
+    with RecordingReader(
+        path, robots=[robot], joint_order={robot: robot_model.joint_names}, on_error="skip"
+    ) as reader:
+        names = reader.joint_names()[robot]
+        if sorted(names) != sorted(robot_model.joint_names):
+            raise RobotModelError(
+                f"{path}: joints of {robot} {names} do not match the URDF {robot_model.joint_names}"
+            )
+        views, camera_frame = _views_from_recording(reader)
+        window = phase_window(reader.metadata(), cfg.phase, cfg.start_ns, cfg.stop_ns, str(path))
+        found, dropped = _candidates(reader, robot, window)
+        if not found:
+            raise RecordingError(
+                f"{path}: no usable stereo frame with joint states in phase={cfg.phase} "
+                f"window {window} ({'; '.join(dropped) or 'no frames there'})"
+            )
+        scale = (robot_model.upper - robot_model.lower).double().numpy()
+        order = spread_configurations(np.stack([c.joints for c in found]), len(found), scale)
+        segment = _segment_fn(segmentor) if segmentor is not None else None
+        used, imgs, msks = [], [[], []], [[], []]
+        n_pixels = [v.width * v.height for v in views]
+        for k in order:
+            if len(used) == cfg.configs:
+                break
+            c = found[k]
+            frame = next(reader.frames(c.index, c.index + 1))
+            if segment is not None:
+                pair = segment(np.stack([frame.left, frame.right]), None)
+                pair = (pair[0], pair[1])
+            else:
+                pair = masks(frame)  # type: ignore[misc]
+            fractions = [
+                float(np.count_nonzero(m)) / n for m, n in zip(pair, n_pixels, strict=True)
+            ]
+            if min(fractions) < cfg.min_mask_fraction:
+                side = "left" if fractions[0] < fractions[1] else "right"
+                dropped.append(
+                    f"frame {c.index} at {c.stamp_ns} ns: {side} mask covers "
+                    f"{100 * min(fractions):.2f} % of the image (robot not visible or unsegmented)"
+                )
+                continue
+            used.append(c)
+            for i, (img, m) in enumerate(zip((frame.left, frame.right), pair, strict=True)):
+                imgs[i].append(img)
+                msks[i].append(np.asarray(m, dtype=bool))
+    if not used:
+        raise CameraError(
+            f"{path}: every candidate frame has an empty mask; nothing to register "
+            f"({len(dropped)} problems: {dropped[-1] if dropped else ''})"
+        )
+    if len(used) < cfg.configs:
+        warnings.append(f"only {len(used)} of {cfg.configs} configurations usable")
+    images = [np.stack(x) for x in imgs]
+    mask_stacks = [np.stack(x) for x in msks]
+    seconds["read_segment"] = time.perf_counter() - t0
+    log.info("registering on %d configurations of %s (%s)", len(used), robot, path.name)
+
+    q = torch.as_tensor(np.stack([c.joints for c in used]), dtype=robot_model.dtype)
+    coarse = robot_model.decimated(cfg.cso_reduction) if cfg.cso_reduction > 0 else robot_model
+    fine = robot_model.decimated(cfg.sdr_reduction) if cfg.sdr_reduction > 0 else robot_model
+    t1 = time.perf_counter()
+    roi_views, roi_masks = crop_to_masks(views, mask_stacks, cfg.roi_margin)
+    log.info("region of interest: %s", [(v.name, v.width, v.height) for v in roi_views])
+    n_cso = max(1, min(cfg.cso_configs, len(used)))
+    found_cso = cso(
+        coarse.posed_vertices(q[:n_cso]),
+        coarse.faces,
+        roi_views,
+        [m[:n_cso] for m in roi_masks],
+        cfg.cso,
+    )
+    seconds["cso"] = time.perf_counter() - t1
+    t1 = time.perf_counter()
+    verts = fine.posed_vertices(q)
+    sdr_views = views_for_width(roi_views, cfg.width)
+    starts = [c.T_cam_base for c in found_cso.candidates]
+    coarse_views = views_for_width(roi_views, cfg.coarse_width or cfg.width)
+    res_sdr = sdr_multistart(verts, fine.faces, coarse_views, roi_masks, starts, cfg.sdr)
+    if coarse_views[0].width != sdr_views[0].width:
+        refined = sdr(verts, fine.faces, sdr_views, roi_masks, res_sdr.T_cam_base, cfg.sdr)
+        if refined.reason != "diverged":
+            res_sdr = refined
+    seconds["sdr"] = time.perf_counter() - t1
+    res, prior = res_sdr, None
+    if cfg.method == "sdr_prior":
+        t1 = time.perf_counter()
+        prior_cfg = replace(cfg.prior, width=cfg.width, roi_margin=cfg.roi_margin)
+        prior = sdr_with_prior(
+            verts,
+            fine.faces,
+            views,
+            images,
+            segment,
+            res_sdr.T_cam_base,
+            prior_cfg,  # type: ignore[arg-type]
+        )
+        res = prior.result
+        mask_stacks = prior.masks
+        seconds["sdr_prior"] = time.perf_counter() - t1
+    seconds["total"] = time.perf_counter() - t0
+    if res.reason == "diverged":
+        warnings.append("SDR diverged (robot left the images, non-finite cost or IoU collapse)")
+    mean_iou = float(np.mean(list(res.per_view_iou.values())))
+    if mean_iou < cfg.min_iou:
+        warnings.append(f"poor fit: mean IoU {mean_iou:.3f} < {cfg.min_iou}")
+    for c, row in zip(used, res.per_frame_iou, strict=False):
+        if float(row.min()) < cfg.min_iou:
+            warnings.append(f"frame {c.index}: IoU {row.round(3).tolist()} (left, right)")
+    if len(robots_in_masks) > 1:
+        warnings.append(
+            f"recording has robots {robots_in_masks}: masks contain all of them, only {robot}'s "
+            "joints are used"
+        )
+    for w in warnings:
+        log.warning("%s", w)
+    return Registration(
+        T_cam_base=res.T_cam_base,
+        method=cfg.method,
+        result=res,
+        sdr=res_sdr,
+        prior=prior,
+        configurations=used,
+        camera_frame=camera_frame,
+        base_frame=f"{robot}/{robot_model.root_link}",
+        robot=robot,
+        robots_in_masks=robots_in_masks,
+        joint_names=list(robot_model.joint_names),
+        dropped=dropped,
+        warnings=warnings,
+        views=views,
+        images=images,
+        masks=mask_stacks,
+        cso_fitness=found_cso.best.fitness,
+        seconds=seconds,
+    )
+
+
+def estimate_silhouettes(reg: Registration, robot_model: RobotModel) -> list[np.ndarray]:
+    """Per view, hard silhouettes ``[C, H, W]`` bool of the robot at the estimate, at the image
+    resolution, for the configurations used (e.g. for overlays)."""
+    from roboseg.registration.sdr_prior import render_prior
+
+    q = torch.as_tensor(np.stack([c.joints for c in reg.configurations]), dtype=robot_model.dtype)
+    verts = robot_model.posed_vertices(q)
+    return [render_prior(verts, robot_model.faces, v, reg.T_cam_base) > 0.5 for v in reg.views]

@@ -1,0 +1,484 @@
+"""Registration stage 2: configuration choice, phases, SDR with prior, driver, pose.yaml, CLI."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig
+from torch import nn
+
+from roboseg.config import CONF_DIR
+from roboseg.errors import RecordingError
+from roboseg.recording import RecordingReader
+from roboseg.registration.cso import CSOConfig
+from roboseg.registration.pose import rotation_angle
+from roboseg.registration.register import (
+    RegisterConfig,
+    phase_window,
+    register,
+    spread_configurations,
+)
+from roboseg.registration.sdr import SDRConfig
+from roboseg.registration.sdr_prior import PriorConfig, render_prior, sdr_with_prior
+from roboseg.registration.views import views_at_resolution
+from roboseg.robot import load_robot
+from roboseg.segmentor import OnnxSegmentor, SegmentorMeta
+
+WIDTH, HEIGHT = 320, 180
+LEFT = "camera_left_optical_frame"
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _single_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+# --------------------------------------------------------------------------------------------
+# pure helpers (hand-computed)
+
+
+def test_spread_configurations_hand_computed() -> None:
+    q = np.array([[0.0], [1.0], [2.0], [10.0]])
+    # mean 3.25: row 3 is farthest (6.75); then row 0 (10 from row 3); then row 2 (min dist 2)
+    assert spread_configurations(q, 2) == [3, 0]
+    assert spread_configurations(q, 3) == [3, 0, 2]
+    assert sorted(spread_configurations(q, 10)) == [0, 1, 2, 3]
+    # scaled rows (0, 0), (1, 0), (0, 10): row 2 is farthest from the mean (0.33, 3.33), then
+    # row 1 (√101 from row 2) beats row 0 (10); unscaled, row 1 would come first
+    q2 = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 0.1]])
+    assert spread_configurations(q2, 2, scale=np.array([1.0, 0.01])) == [2, 1]
+    assert spread_configurations(q2, 1) == [1]
+    assert spread_configurations(np.zeros((0, 3)), 2) == []
+
+
+def test_phase_window() -> None:
+    meta = {"roboseg_sim": {"drape_start_stamp_ns": "100"}}
+    assert phase_window(meta, "all", 5, None) == (5, None)
+    assert phase_window(meta, "undraped") == (None, 100)
+    assert phase_window(meta, "undraped", None, 50) == (None, 50)
+    assert phase_window(meta, "draped", 50) == (100, None)
+    assert phase_window(meta, "draped", 150, 300) == (150, 300)
+    with pytest.raises(RecordingError, match="phase=undraped needs the roboseg_sim"):
+        phase_window({}, "undraped", source="x.mcap")
+    with pytest.raises(RecordingError, match="no draped frames"):
+        phase_window({"roboseg_sim": {"drape_start_stamp_ns": "-1"}}, "draped")
+
+
+def test_crop_to_masks_hand_computed() -> None:
+    from roboseg.registration.views import View, crop_to_masks, views_for_width
+
+    K = torch.tensor([[100.0, 0, 49.5], [0, 100.0, 29.5], [0, 0, 1]])
+    view = View("left", K, 100, 60, torch.eye(4))
+    m = np.zeros((2, 60, 100), bool)
+    m[0, 20:30, 40:50] = True  # rows 20..29, columns 40..49
+    m[1, 25:35, 45:60] = True  # union: rows 20..34 (15), columns 40..59 (20)
+    (v,), (c,) = crop_to_masks([view], [m], margin=0.2)  # grow 3 rows, 4 columns per side
+    assert (v.width, v.height) == (28, 21) and c.shape == (2, 21, 28)
+    assert (v.K[0, 2].item(), v.K[1, 2].item()) == (49.5 - 36, 29.5 - 17)
+    assert c.sum() == m.sum() and c[0, 3, 4] and not c[0, 2, 4]
+    edge = np.zeros((1, 60, 100), bool)
+    edge[0, 0:10, 90:100] = True  # clipped at the image border
+    (v2,), _ = crop_to_masks([view], [edge], margin=0.5)
+    assert (v2.width, v2.height) == (15, 15)
+    (v3,), _ = crop_to_masks([view], [np.zeros((1, 60, 100), bool)])
+    assert v3 is view
+    small = views_for_width([view, v], 50)
+    assert [(s.width, s.height) for s in small] == [(50, 30), (14, 10)]
+    assert views_for_width([view], 200)[0] is view
+
+
+# --------------------------------------------------------------------------------------------
+# a tiny simulated recording and a prior-passing ONNX "segmentor"
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    from roboseg.sim import SimConfig, simulate_recording
+
+    path = tmp_path_factory.mktemp("reg") / "tiny.mcap"
+    simulate_recording(
+        SimConfig(frames=24, seed=3, width=WIDTH, height=HEIGHT, distance=(1.4, 1.6)), path
+    )
+    robot = load_robot(None)
+    gt: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    with RecordingReader(path, mask_topics=["left/robot_mask_gt", "right/robot_mask_gt"]) as r:
+        for f in r.frames():
+            gt[f.stamp_ns] = (f.masks["left/robot_mask_gt"], f.masks["right/robot_mask_gt"])
+        T_true = r.lookup(LEFT, f"robot_0/{robot.root_link}")  # scoring only
+    return {"path": path, "gt": gt, "T_true": T_true, "robot": robot}
+
+
+class PriorPassing(nn.Module):
+    """logits = 20·(prior − 1/2): the segmentation is the prior channel."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.conv = nn.Conv2d(4, 1, 1)
+        with torch.no_grad():
+            self.conv.weight.zero_()
+            self.conv.weight[0, 3] = 20.0
+            self.conv.bias.fill_(-10.0)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.conv(x)
+
+
+@pytest.fixture(scope="module")
+def prior_model(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from export.onnx import export_onnx
+
+    meta = SegmentorMeta(
+        encoder="prior_passing",
+        in_channels=4,
+        input_height=HEIGHT,
+        input_width=WIDTH,
+        mean=(0.5, 0.5, 0.5),
+        std=(0.25, 0.25, 0.25),
+        threshold=0.5,
+        trained_on="none",
+    )
+    return export_onnx(PriorPassing(), meta, tmp_path_factory.mktemp("onnx") / "prior.onnx")
+
+
+def _errors(T: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """(translation error mm, rotation error deg)."""
+    dt = 1000 * float(np.linalg.norm(T[:3, 3] - T_true[:3, 3]))
+    dr = float(rotation_angle(torch.as_tensor(T[:3, :3]), torch.as_tensor(T_true[:3, :3])))
+    return dt, math.degrees(dr)
+
+
+# SDR from a swarm searched around the simulator's camera distances (1.4–1.6 m)
+FAST = RegisterConfig(
+    configs=4,
+    method="sdr",
+    width=WIDTH,
+    coarse_width=160,
+    cso=CSOConfig(
+        n_particles=256,
+        iterations=12,
+        width=48,
+        r_min=1.1,
+        r_max=2.0,
+        centre_radius=0.3,
+        roll_range=0.6,
+        n_candidates=2,
+    ),
+    sdr=SDRConfig(max_iterations=250, lr=4e-3),
+)
+
+
+@pytest.fixture(scope="module")
+def registered(recording: dict):
+    gt = recording["gt"]
+    return register(
+        recording["path"], recording["robot"], masks=lambda f: gt[f.stamp_ns], config=FAST
+    )
+
+
+def test_register_recovers_pose_from_gt_masks(registered, recording: dict) -> None:
+    dt, dr = _errors(registered.T_cam_base, recording["T_true"])
+    assert registered.converged, registered.warnings
+    # measured: ≈1.1 mm, ≈0.5° (robot ≈2 % of a 320×180 image, base ≈1.9 m away)
+    assert dt < 5.0 and dr < 1.0, (dt, dr)
+    assert min(registered.result.per_view_iou.values()) > 0.95
+    assert len(registered.configurations) == 4
+    assert registered.camera_frame == LEFT
+    assert registered.base_frame == f"robot_0/{recording['robot'].root_link}"
+    stamps = [c.stamp_ns for c in registered.configurations]
+    assert len(set(stamps)) == 4
+
+
+def test_register_phase_and_dropped_frames(recording: dict) -> None:
+    """Undraped phase only; frames with an empty mask are dropped and reported."""
+    gt = recording["gt"]
+    meta = RecordingReader(recording["path"]).metadata()["roboseg_sim"]
+    drape = int(meta["drape_start_stamp_ns"])
+    blank = sorted(s for s in gt if s < drape)[:3]
+
+    def masks(frame):
+        if frame.stamp_ns in blank:
+            return np.zeros((HEIGHT, WIDTH), bool), gt[frame.stamp_ns][1]
+        return gt[frame.stamp_ns]
+
+    cfg = RegisterConfig(
+        configs=30,  # more than the undraped frames: all usable ones are taken
+        phase="undraped",
+        method="sdr",
+        width=64,
+        cso=CSOConfig(n_particles=8, iterations=0, width=32),
+        sdr=SDRConfig(max_iterations=2),
+    )
+    reg = register(recording["path"], recording["robot"], masks=masks, config=cfg)
+    n_undraped = int(meta["undraped_frames"])
+    assert all(c.stamp_ns < drape for c in reg.configurations)
+    assert len(reg.configurations) == n_undraped - 3
+    assert sum("left mask covers 0.00 %" in d for d in reg.dropped) == 3
+    assert any("only" in w and "configurations usable" in w for w in reg.warnings)
+
+
+def test_render_prior_and_sdr_with_prior_refreshes(recording: dict, prior_model: Path) -> None:
+    """The ONNX model's segmentation is its prior: SDR with prior keeps a self-consistent
+    estimate and segments once per round (here 4 rounds of 10 iterations)."""
+    from roboseg.camera import StereoRig
+    from roboseg.registration.views import stereo_views
+
+    robot = recording["robot"].decimated(0.9)
+    with RecordingReader(recording["path"]) as r:
+        frames = list(r.frames(0, 24, 8))
+        calib = r.camera_calib()
+    from roboseg.camera import Intrinsics
+
+    rig = StereoRig(
+        Intrinsics.from_K(calib.left.K, WIDTH, HEIGHT),
+        Intrinsics.from_K(calib.right.K, WIDTH, HEIGHT),
+        calib.T_right_left,
+    )
+    views = stereo_views(rig)
+    q = torch.as_tensor(np.stack([f.joints["robot_0"] for f in frames]), dtype=torch.float32)
+    verts = robot.posed_vertices(q)
+    T_true = recording["T_true"]
+    prior = render_prior(verts, robot.faces, views[0], T_true)
+    assert prior.shape == (3, HEIGHT, WIDTH) and set(np.unique(prior)) == {0.0, 1.0}
+    behind = T_true.copy()
+    behind[2, 3] = -5.0
+    assert not render_prior(verts, robot.faces, views[0], behind).any()
+
+    seg = OnnxSegmentor(prior_model)
+    calls: list[np.ndarray] = []
+
+    def segment(images: np.ndarray, p: np.ndarray) -> np.ndarray:
+        calls.append(p)
+        return seg.predict(images, p) > seg.meta.threshold
+
+    images = [np.stack([f.left for f in frames]), np.stack([f.right for f in frames])]
+    out = sdr_with_prior(
+        verts,
+        robot.faces,
+        views,
+        images,
+        segment,
+        T_true,
+        PriorConfig(iterations=40, refresh_every=10, sdr=SDRConfig()),
+    )
+    assert out.refreshes == 4 and len(calls) == 8  # 4 rounds x (left, right)
+    assert len(out.round_iou) == 4
+    np.testing.assert_array_equal(out.masks[0], calls[-2] > 0.5)  # segmentation == prior
+    dt, dr = _errors(out.result.T_cam_base, T_true)
+    assert dt < 3.0 and dr < 0.3, (dt, dr)
+    assert out.result.iterations <= 40
+
+    with pytest.raises(Exception, match="no refinement round succeeded"):
+        sdr_with_prior(
+            verts, robot.faces, views, images, segment, behind, PriorConfig(iterations=5)
+        )
+    small = views_at_resolution(views, 160)
+    with pytest.raises(Exception, match="images are 320x180 but the camera is 160x90"):
+        sdr_with_prior(verts, robot.faces, small, images, segment, T_true)
+
+
+# --------------------------------------------------------------------------------------------
+# pose.yaml and the command
+
+
+def test_pose_yaml_contents(registered, recording: dict, tmp_path: Path) -> None:
+    from roboseg.cli.register import load_pose_yaml, pose_document, save_pose_yaml
+
+    doc = pose_document(registered, str(recording["path"]), None)
+    path = save_pose_yaml(doc, tmp_path / "pose.yaml")
+    text = path.read_text()
+    assert text.startswith("# p_camera = T_cam_base @ p_base")
+    loaded = yaml.safe_load(text)
+    assert np.asarray(loaded["T_cam_base"]).shape == (4, 4)
+    T, cam, base = load_pose_yaml(path)
+    np.testing.assert_allclose(T, registered.T_cam_base, atol=1e-12)
+    assert (cam, base) == (LEFT, registered.base_frame)
+    assert loaded["method"] == "sdr" and loaded["termination"] == registered.result.reason
+    assert set(loaded["residual_iou"]) == {"left", "right"}
+    assert len(loaded["configurations"]) == 4
+    names = recording["robot"].joint_names
+    assert list(loaded["configurations"][0]["joints"]) == names
+    assert loaded["masks_contain_robots"] == ["robot_0"]
+
+
+def test_registered_recording_carries_the_estimate(registered, recording, tmp_path) -> None:
+    from roboseg.cli.register import write_registered_recording
+
+    dst = write_registered_recording(recording["path"], tmp_path / "out.mcap", registered)
+    with RecordingReader(dst) as r, RecordingReader(recording["path"]) as src:
+        T = r.lookup(LEFT, registered.base_frame)
+        np.testing.assert_allclose(T, registered.T_cam_base, atol=1e-6)
+        assert r.camera_calib().T_right_left is not None
+        assert len(r) == len(src) and r.metadata() == src.metadata()
+
+
+def _cfg(overrides: list[str]) -> DictConfig:
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(config_name="register", overrides=overrides)
+
+
+def test_cli_errors(recording: dict, prior_model: Path, tmp_path: Path, capsys) -> None:
+    from roboseg.cli.register import run
+
+    cases = [
+        ([f"recording={tmp_path / 'none.mcap'}"], "recording: no such file"),
+        ([f"recording={recording['path']}"], "model: required"),
+        (
+            [f"recording={recording['path']}", f"model_file={tmp_path / 'x.onnx'}"],
+            "no such ONNX file",
+        ),
+        (
+            [f"recording={recording['path']}", f"model_file={prior_model}", "robot.name=robot_7"],
+            "robot=robot_7 not found",
+        ),
+        (
+            [f"recording={recording['path']}", f"model_file={prior_model}", "method=icp"],
+            "method must be sdr or sdr_prior",
+        ),
+        # zero prior at first: the prior-passing model segments nothing
+        (
+            [f"recording={recording['path']}", f"model_file={prior_model}", f"out={tmp_path}"],
+            "every candidate frame has an empty mask",
+        ),
+    ]
+    for overrides, message in cases:
+        with pytest.raises(SystemExit) as exc:
+            run(_cfg(overrides))
+        assert exc.value.code == 1
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and message in err, (overrides, err)
+        assert err.count("\n") == 1
+    assert not (tmp_path / "pose.yaml").exists()
+
+
+def test_cli_accepts_model_argument() -> None:
+    from roboseg.cli.register import alias_model_argument
+
+    argv = ["recording=a.mcap", "model=m.onnx", "method=sdr", "model_file=x"]
+    assert alias_model_argument(argv) == [
+        "recording=a.mcap",
+        "model_file=m.onnx",
+        "method=sdr",
+        "model_file=x",
+    ]
+
+
+class GtSegmentor:
+    """Stands in for the ONNX model: returns the ground-truth mask of each known image."""
+
+    in_channels = 4
+    meta = SegmentorMeta("gt", 4, HEIGHT, WIDTH, (0.5,) * 3, (0.25,) * 3, 0.5)
+
+    def __init__(self, table: dict[bytes, np.ndarray]) -> None:
+        self.table = table
+        self.calls = 0
+
+    def predict(self, images: np.ndarray, prior: np.ndarray | None = None) -> np.ndarray:
+        self.calls += 1
+        return np.stack([self.table[img.tobytes()] for img in images]).astype(np.float32)
+
+
+def test_cli_writes_pose_overlays_and_recording(
+    recording: dict, prior_model: Path, tmp_path: Path, monkeypatch, capsys
+) -> None:
+    import roboseg.segmentor
+    from roboseg.cli.register import run
+
+    table = {}
+    with RecordingReader(recording["path"]) as r:
+        for f in r.frames():
+            left, right = recording["gt"][f.stamp_ns]
+            table[f.left.tobytes()], table[f.right.tobytes()] = left, right
+    fake = GtSegmentor(table)
+    monkeypatch.setattr(roboseg.segmentor, "OnnxSegmentor", lambda *a, **k: fake)
+    out = tmp_path / "out"
+    cfg = _cfg(
+        [
+            f"recording={recording['path']}",
+            f"model_file={prior_model}",
+            f"out={out}",
+            "method=sdr_prior",
+            "configs=2",
+            "phase=undraped",
+            "width=160",
+            "coarse_width=null",
+            "min_iou=0.0",
+            "cso.n_particles=16",
+            "cso.iterations=1",
+            "cso.n_candidates=1",
+            "sdr.max_iterations=5",
+            "prior.iterations=6",
+            "prior.refresh_every=3",
+            "write_recording=true",
+        ]
+    )
+    pose_path = run(cfg)
+    assert capsys.readouterr().out.strip() == str(pose_path)
+    doc = yaml.safe_load(pose_path.read_text())
+    assert doc["method"] == "sdr_prior" and doc["segmentation_refreshes"] == 2
+    assert doc["model"] == str(prior_model.resolve())
+    assert len(doc["configurations"]) == 2
+    meta = RecordingReader(recording["path"]).metadata()["roboseg_sim"]
+    assert all(c["stamp_ns"] < int(meta["drape_start_stamp_ns"]) for c in doc["configurations"])
+    assert fake.calls == 2 + 2 * 2  # one stereo pair per configuration, then 2 rounds x 2 views
+    overlays = sorted(p.name for p in (out / "overlays").iterdir())
+    assert len(overlays) == 4 and overlays[0].endswith("_left.png")
+    with RecordingReader(out / "tiny_registered.mcap") as r:
+        np.testing.assert_allclose(
+            r.lookup(LEFT, doc["base_frame"]), np.asarray(doc["T_cam_base"]), atol=1e-6
+        )
+
+
+def _copy_without_joints(src: Path, dst: Path, before_ns: int) -> None:
+    """``src`` without the joint states stamped before ``before_ns``."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with open(src, "rb") as fin, open(dst, "wb") as fout:
+        reader, writer = make_reader(fin), Writer(fout)
+        writer.start(profile="ros2", library="test")
+        for record in reader.iter_metadata():
+            writer.add_metadata(record.name, dict(record.metadata))
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        for schema, channel, message in reader.iter_messages():
+            if channel.topic.endswith("/joint_states") and message.log_time < before_ns:
+                continue
+            if channel.id not in channels:
+                if schema.id not in schemas:
+                    schemas[schema.id] = writer.register_schema(
+                        schema.name, schema.encoding, schema.data
+                    )
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schemas[schema.id]
+                )
+            writer.add_message(
+                channels[channel.id], message.log_time, message.data, message.publish_time
+            )
+        writer.finish()
+
+
+def test_register_reports_frames_without_joint_states(recording: dict, tmp_path: Path) -> None:
+    gt = recording["gt"]
+    stamps = sorted(gt)
+    path = tmp_path / "gappy.mcap"
+    _copy_without_joints(recording["path"], path, stamps[5] - 1)
+    cfg = RegisterConfig(
+        configs=3,
+        method="sdr",
+        width=64,
+        cso=CSOConfig(n_particles=8, iterations=0, width=32),
+        sdr=SDRConfig(max_iterations=2),
+    )
+    reg = register(path, recording["robot"], masks=lambda f: gt[f.stamp_ns], config=cfg)
+    # frames 0..4 have no joint state at or before them within tolerance: dropped, and said so
+    assert "5 frames: no joint state within tolerance" in reg.dropped, reg.dropped
+    assert all(c.stamp_ns >= stamps[5] for c in reg.configurations)
