@@ -8,10 +8,8 @@ renamed on success, so a failed run leaves no partial output.
 from __future__ import annotations
 
 import hashlib
-import os
 import struct
 from pathlib import Path
-from types import TracebackType
 
 import cv2
 import numpy as np
@@ -19,6 +17,7 @@ from mcap.records import Channel, Message, Schema
 from mcap.writer import CompressionType, Writer
 
 from roboseg.recording import msgs
+from roboseg.recording.atomic import AtomicMcapFile
 
 _CDR_LE = b"\x00\x01\x00\x00"
 
@@ -70,32 +69,16 @@ def sha256_file(path: str | Path, block: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
-class AnnotatedWriter:
+class AnnotatedWriter(AtomicMcapFile):
     """Atomic MCAP writer copying raw records (schemas/channels remapped by identity)."""
 
     def __init__(self, path: str | Path, chunk_size: int = 4 * 1024 * 1024) -> None:
-        self.path = Path(path)
-        self.part_path = self.path.with_name(self.path.name + ".part")
-        self._file = open(self.part_path, "wb")  # noqa: SIM115 - closed in close()/abort()
-        self._writer = Writer(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        self._writer = Writer(
+            self._open_part(path), chunk_size=chunk_size, compression=CompressionType.ZSTD
+        )
         self._writer.start(profile="ros2", library="roboseg-annotate")
         self._schemas: dict[tuple[str, str, bytes], int] = {}
         self._channels: dict[tuple[str, int, str], int] = {}
-        self._closed = False
-
-    def __enter__(self) -> AnnotatedWriter:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
 
     def schema_id(self, schema: Schema | None) -> int:
         """Output id of an input schema (0 for none), registered on first use."""
@@ -125,23 +108,3 @@ class AnnotatedWriter:
         """Write a PNG mask as ``CompressedImage`` (``schema``: a CompressedImage schema)."""
         data = compressed_image_cdr(stamp_ns, frame_id, msgs.PNG_MASK_FORMAT, png)
         self._writer.add_message(self.channel_id(topic, schema), log_ns, data, log_ns)
-
-    def close(self) -> Path:
-        """Finish the MCAP and move it to its final path."""
-        if not self._closed:
-            try:
-                self._writer.finish()
-                self._file.close()
-            except BaseException:
-                self.abort()
-                raise
-            os.replace(self.part_path, self.path)
-            self._closed = True
-        return self.path
-
-    def abort(self) -> None:
-        """Discard the partial file."""
-        if not self._closed:
-            self._closed = True
-            self._file.close()
-            self.part_path.unlink(missing_ok=True)

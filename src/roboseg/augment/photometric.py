@@ -10,6 +10,7 @@ never enters this module. Hue jitter is the slowest op on a CPU; its default ran
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Sequence
 
 import kornia
@@ -23,7 +24,7 @@ def _uniform(n: int, low: float, high: float, generator: torch.Generator) -> tor
     return low + (high - low) * torch.rand(n, generator=generator, device=generator.device)
 
 
-class PhotometricOp(nn.Module):
+class PhotometricOp(nn.Module, ABC):
     """One photometric operation: draws ``apply`` per sample, then values for those samples."""
 
     def __init__(self, p: float = 0.2) -> None:
@@ -43,9 +44,9 @@ class PhotometricOp(nn.Module):
         """Random values of ``n`` selected samples of an RGB batch of ``shape``."""
         return {}
 
+    @abstractmethod
     def transform(self, rgb: torch.Tensor, params: Params) -> torch.Tensor:
         """The operation on the selected samples ``rgb`` ``[n,3,H,W]``."""
-        raise NotImplementedError
 
     def apply(self, rgb: torch.Tensor, params: Params) -> torch.Tensor:
         """Transform the selected samples of ``rgb`` ``[B,3,H,W]``, clamp them to [0, 1]."""

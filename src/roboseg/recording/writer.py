@@ -6,7 +6,6 @@ import logging
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from types import TracebackType
 from typing import Any
 
 import cv2
@@ -17,6 +16,7 @@ from mcap_ros2.writer import Writer as Ros2Writer
 
 from roboseg.errors import RecordingError
 from roboseg.recording import msgs
+from roboseg.recording.atomic import AtomicMcapFile
 from roboseg.recording.msgs import CameraCalib
 from roboseg.recording.tf import invert_transform, matrix_to_quaternion
 from roboseg.recording.topics import TF_STATIC, camera_info_topic
@@ -52,7 +52,7 @@ def encode_mask(mask: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
-class RecordingWriter:
+class RecordingWriter(AtomicMcapFile):
     """Context manager writing one recording to ``path`` atomically.
 
     Messages go to ``<path>.part``; :meth:`close` (or leaving the ``with`` block normally)
@@ -69,10 +69,8 @@ class RecordingWriter:
         chunk_size: int = 4 * 1024 * 1024,
         compression: str = "zstd",
     ) -> None:
-        self.path = Path(path)
-        self.part_path = self.path.with_name(self.path.name + ".part")
-        if not self.path.parent.is_dir():
-            raise RecordingError(f"{self.path}: output folder does not exist")
+        if not Path(path).parent.is_dir():
+            raise RecordingError(f"{Path(path)}: output folder does not exist")
         compressions = {
             "zstd": CompressionType.ZSTD,
             "lz4": CompressionType.LZ4,
@@ -80,51 +78,12 @@ class RecordingWriter:
         }
         if compression not in compressions:
             raise ValueError(f"compression {compression!r} not in {sorted(compressions)}")
-        self._file = open(self.part_path, "wb")  # noqa: SIM115 - closed in close()/abort()
         self._writer = Ros2Writer(
-            self._file, chunk_size=chunk_size, compression=compressions[compression]
+            self._open_part(path), chunk_size=chunk_size, compression=compressions[compression]
         )
         self._schemas: dict[str, Schema] = {}
-        self._closed = False
         for name, data in (metadata or {}).items():
             self.write_metadata(name, data)
-
-    # -- context manager -------------------------------------------------------------------
-    def __enter__(self) -> RecordingWriter:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
-
-    def close(self) -> Path:
-        """Finish the MCAP (summary, footer) and move it to its final path."""
-        if not self._closed:
-            try:
-                self._writer.finish()
-                self._file.close()
-            except BaseException:
-                self.abort()
-                raise
-            os.replace(self.part_path, self.path)
-            self._closed = True
-            logger.info("wrote recording %s", self.path)
-        return self.path
-
-    def abort(self) -> None:
-        """Discard the partial file; nothing is written to the final path."""
-        if not self._closed:
-            self._closed = True
-            self._file.close()
-            self.part_path.unlink(missing_ok=True)
-            logger.warning("discarded partial recording %s", self.part_path)
 
     # -- messages --------------------------------------------------------------------------
     def _write(self, topic: str, schema_name: str, message: dict[str, Any], stamp_ns: int) -> None:
