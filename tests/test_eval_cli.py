@@ -8,13 +8,11 @@ import json
 from pathlib import Path
 
 import cv2
-import lightning.pytorch as pl
 import numpy as np
 import onnx
 import pytest
-import torch
 from hydra import compose, initialize_config_dir
-from torch.utils.data import DataLoader, Dataset
+from tiny_models import SIZE, train_checkpoint
 
 from export.checkpoint import load_for_export
 from export.onnx import export_onnx
@@ -33,35 +31,8 @@ from roboseg.evaluation.run import (
 )
 from roboseg.robot import load_robot
 from roboseg.sim import SimConfig, simulate_recording
-from roboseg.training import SegmentationModule
 
 FRAMES = 5
-SIZE = 64
-
-
-class Squares(Dataset):
-    def __len__(self) -> int:
-        return 8
-
-    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        g = torch.Generator().manual_seed(i)
-        image = torch.rand(3, SIZE, SIZE, generator=g) * 0.5
-        mask = torch.zeros(1, SIZE, SIZE)
-        mask[:, 10:40, 20:44] = 1
-        image = torch.where(mask.bool(), torch.tensor([0.9, 0.9, 0.9]).view(3, 1, 1), image)
-        return {"image": image, "mask": mask, "prior": mask.roll(3, -1),
-                "visible": torch.tensor(True), "index": torch.tensor(i)}
-
-
-def train_checkpoint(path: Path, in_channels: int) -> Path:
-    torch.manual_seed(0)
-    module = SegmentationModule(model={"name": "unet_resnet18", "in_channels": in_channels},
-                                lr=1e-3, image_size=(SIZE, SIZE), dataset="synthetic")
-    trainer = pl.Trainer(max_steps=2, accelerator="cpu", logger=False, enable_checkpointing=False,
-                         enable_progress_bar=False, enable_model_summary=False)
-    trainer.fit(module, DataLoader(Squares(), batch_size=4))
-    trainer.save_checkpoint(path)
-    return path
 
 
 @pytest.fixture(scope="module")
