@@ -88,6 +88,49 @@ def write_synthetic_recording(
     return path
 
 
+def write_annotatable_recording(
+    path: Path,
+    frames: int,
+    width: int,
+    height: int,
+    fps: float = 15.0,
+    seed: int = 0,
+    chunk_size: int = 4 * 1024 * 1024,
+) -> Path:
+    """A recording ``roboseg-annotate`` accepts, written fast (no rendering): one robot (the
+    built-in arm's joint names, all joints moving) 1.5 m in front of the left camera, its
+    calibration on ``/tf_static``, and small noisy stereo JPEGs of ``width``×``height``, in MCAP
+    chunks of about ``chunk_size`` bytes."""
+    from roboseg.robot import load_robot
+
+    robot = load_robot(None)
+    rng = np.random.default_rng(seed)
+    left, right = "camera_left_optical_frame", "camera_right_optical_frame"
+    K = np.array([[width, 0, (width - 1) / 2], [0, width, (height - 1) / 2], [0, 0, 1.0]])
+    T_left_base = np.eye(4)
+    T_left_base[:3, :3] = [[0, -1, 0], [0, 0, -1], [1, 0, 0]]  # base x forward -> camera z
+    T_left_base[:3, 3] = [0.0, 0.4, 1.5]
+    T_left_right = np.eye(4)
+    T_left_right[0, 3] = 0.12
+    lower, upper = robot.lower.double().numpy(), robot.upper.double().numpy()
+    mid, amp = (lower + upper) / 2, 0.3 * np.minimum(upper - lower, 2.0)
+    t0, period = 1_700_000_000_000_000_000, int(1e9 / fps)
+    img = rng.integers(0, 255, (height, width, 3), dtype=np.uint8)
+    with RecordingWriter(path, chunk_size=chunk_size) as w:
+        w.write_tf_static(
+            [(left, f"robot_0/{robot.root_link}", T_left_base), (left, right, T_left_right)], t0
+        )
+        for side, frame in (("left", left), ("right", right)):
+            w.write_camera_info(camera_info_topic("camera", side), t0, frame, K, width, height)
+        for i in range(frames):
+            stamp = t0 + i * period
+            q = mid + amp * np.sin(0.05 * i + np.arange(robot.dof))
+            w.write_joint_state(joint_states_topic("robot_0"), stamp, robot.joint_names, q)
+            for side, frame in (("left", left), ("right", right)):
+                w.write_image(image_topic("camera", side), stamp, frame, img)
+    return path
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("paths", nargs="*", type=Path)

@@ -135,6 +135,39 @@ def test_masks_match_simulator_ground_truth(sim_path, robot, tmp_path):
             assert iou(f.masks[f"{side}/robot_mask"], gt) >= 0.99
 
 
+def test_worker_processes_write_the_same_file(sim_path, robot, tmp_path):
+    one, two = tmp_path / "one.mcap", tmp_path / "two.mcap"
+    annotate_recording(sim_path, one, robot, AnnotateOptions(min_joint_speed=0.0))
+    annotate_recording(sim_path, two, robot, AnnotateOptions(min_joint_speed=0.0, workers=2))
+    assert one.read_bytes() == two.read_bytes()
+
+
+class _CountingEncoder:
+    """Stands in for MaskRenderer: the PNG pair of a frame is its joint value as text."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def encode(self, joints: dict[str, np.ndarray], level: int) -> tuple[bytes, bytes]:
+        self.calls += 1
+        k = int(joints["r"][0])
+        return (b"L%d" % k, b"R%d" % k)
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_mask_stream_in_order_out_of_order_and_again(workers):
+    from roboseg.annotate.parallel import MaskStream
+
+    encoder = _CountingEncoder()
+    joints = [{"r": np.array([k])} for k in range(23)]
+    with MaskStream(encoder, joints, level=1, workers=workers, batch=3, ahead=1) as stream:
+        order = [0, 2, 1, *range(3, 23), 5, 22]  # a late frame and repeats are re-rendered
+        got = [stream.get(k) for k in order]
+    assert got == [[b"L%d" % k, b"R%d" % k] for k in order]
+    if workers == 1:
+        assert encoder.calls == len(order)
+
+
 def test_phase_filter_and_calibration_file(sim_path, robot, tmp_path):
     with RecordingReader(sim_path) as reader:
         T = reader.lookup(LEFT, f"robot_0/{robot.root_link}")

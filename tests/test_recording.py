@@ -497,3 +497,17 @@ def test_reader_pickles_for_workers(recording: tuple[Path, list[int]]) -> None:
     frames = list(clone.frames(decode=False))
     assert [f.stamp_ns for f in frames] == stamps and first.index == 0
     assert len(clone._cache) <= 4  # streaming: only a few decompressed chunks held
+
+
+def test_masks_are_1_bit_pngs_decoding_to_0_and_255() -> None:
+    import cv2
+
+    from roboseg.recording.reader import decode_mask
+    from roboseg.recording.writer import encode_mask
+
+    mask = np.random.default_rng(2).integers(0, 3, (9, 13)).astype(np.uint8)  # nonzero: robot
+    data = encode_mask(mask)
+    assert data[24] == 1 and data[25] == 0  # IHDR: bit depth 1, greyscale
+    gray = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+    np.testing.assert_array_equal(gray, np.where(mask != 0, 255, 0))
+    np.testing.assert_array_equal(decode_mask(data), mask != 0)

@@ -349,6 +349,31 @@ def test_same_seed_gives_identical_images(one_robot, tmp_path):
     assert _frames(other)[0].left.tobytes() != _frames(path)[0].left.tobytes()
 
 
+def test_worker_processes_write_the_same_bytes(one_robot, tmp_path):
+    path, summary = one_robot
+    assert 0.0 < summary.setup_seconds < summary.seconds
+    pooled = tmp_path / "pooled.mcap"
+    simulate_recording(SimConfig(frames=5, seed=7, workers=2, **TINY), pooled)
+    assert pooled.read_bytes() == path.read_bytes()
+
+
+def test_to_uint8_matches_the_numpy_pipeline():
+    from roboseg.sim.shading import srgb_lut, to_uint8
+
+    rng = np.random.default_rng(4)
+    linear = rng.uniform(-0.1, 1.3, (12, 10, 3)).astype(np.float32)
+    noise = rng.standard_normal((12, 10, 3), dtype=np.float32)
+    wb = np.array([1.1, 1.0, 0.9])
+    expected = srgb_lut(np.clip(linear * (1.2 * wb.astype(np.float32)), 0.0, 1.0))
+    np.testing.assert_array_equal(
+        to_uint8(linear, 1.2, wb), np.clip(np.rint(expected), 0, 255).astype(np.uint8)
+    )
+    noisy = expected + np.float32(2.5) * noise
+    np.testing.assert_array_equal(
+        to_uint8(linear, 1.2, wb, 2.5, noise), np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
+    )
+
+
 def test_two_robots(tmp_path):
     path = tmp_path / "two.mcap"
     simulate_recording(SimConfig(frames=2, seed=3, robots=2, **TINY), path)

@@ -9,9 +9,11 @@ input's messages (image messages only for kept frames).
 from __future__ import annotations
 
 import logging
+import weakref
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 import torch
@@ -26,6 +28,7 @@ from roboseg.annotate.output import (
     encode_mask_png,
     sha256_file,
 )
+from roboseg.annotate.parallel import MaskStream
 from roboseg.annotate.selection import (
     joint_speed_at,
     phase_mask,
@@ -38,6 +41,7 @@ from roboseg.recording.topics import ROBOT_MASK, mask_topic
 from roboseg.render import render_hard
 from roboseg.robot import RobotModel
 from roboseg.sim import SIM_METADATA
+from roboseg.sim.simulate import is_closed
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +66,8 @@ _RECORD_HEAD = 9  # opcode (1 byte) + record length (8 bytes)
 @dataclass(frozen=True)
 class AnnotateOptions:
     """How to annotate. ``fraction``: kept share of all frames (None: every moving frame);
-    ``min_joint_speed`` in rad/s (or m/s); tolerances in ns; ``png_level`` zlib level 0-9."""
+    ``min_joint_speed`` in rad/s (or m/s); tolerances in ns; ``png_level`` zlib level 0-9;
+    ``workers``: processes rendering masks (``<= 1``: in the calling process)."""
 
     camera: str = "camera"
     fraction: float | None = None
@@ -72,6 +77,7 @@ class AnnotateOptions:
     tolerance_ns: int = 20_000_000
     stereo_tolerance_ns: int = 1_000_000
     png_level: int = 1
+    workers: int = 1
 
 
 @dataclass
@@ -141,8 +147,29 @@ def draped_from(metadata: dict[str, dict[str, str]]) -> int | None:
     return int(value)
 
 
+_CLOSED: dict[int, tuple[weakref.ref, bool]] = {}
+
+
+def mesh_is_closed(robot: RobotModel) -> bool:
+    """:func:`roboseg.sim.simulate.is_closed` of the robot's mesh, cached per model."""
+    hit = _CLOSED.get(id(robot))
+    if hit is not None and hit[0]() is robot:
+        return hit[1]
+    closed = is_closed(
+        robot.vertices.double().numpy(), robot.faces.numpy(), robot.vertex_link.numpy()
+    )
+    _CLOSED[id(robot)] = (weakref.ref(robot), closed)
+    log.debug("robot %s: mesh %s", robot.name, "closed" if closed else "open (no culling)")
+    return closed
+
+
 class MaskRenderer:
-    """Silhouettes of posed robots in a stereo camera (one hard render of both views)."""
+    """Silhouettes of posed robots in a stereo camera (one hard render of both views).
+
+    Back faces are culled when the robot's mesh is closed and outward-wound
+    (:func:`roboseg.sim.simulate.is_closed`): every ray that meets such a mesh enters it
+    through a front face, so the silhouette is the same at about half the cost.
+    """
 
     def __init__(
         self,
@@ -166,6 +193,7 @@ class MaskRenderer:
         self.robots = list(poses)
         n_v = robot.vertices.shape[0]
         self.faces = torch.cat([robot.faces + k * n_v for k in range(len(self.robots))])
+        self.cull = mesh_is_closed(robot)
 
     def render(self, joints: dict[str, np.ndarray]) -> np.ndarray:
         """Bool [2, H, W] (left, right) union silhouette for URDF-ordered joints per robot."""
@@ -175,8 +203,20 @@ class MaskRenderer:
             T = self.T[r]
             verts.append(torch.einsum("vj,bij->bvi", v, T[:, :3, :3]) + T[:, None, :3, 3])
         with torch.no_grad():
-            mask = render_hard(torch.cat(verts, dim=1), self.faces, self.K, self.height, self.width)
+            mask = render_hard(
+                torch.cat(verts, dim=1),
+                self.faces,
+                self.K,
+                self.height,
+                self.width,
+                cull_back_faces=self.cull,
+            )
         return mask.numpy()
+
+    def encode(self, joints: dict[str, np.ndarray], level: int = 1) -> tuple[bytes, bytes]:
+        """(left, right) PNG masks of :meth:`render` (``level``: zlib level 0-9)."""
+        left, right = self.render(joints)
+        return encode_mask_png(left, level), encode_mask_png(right, level)
 
 
 def annotate_recording(
@@ -220,23 +260,59 @@ def annotate_recording(
     return result
 
 
+class JointTable(Sequence[dict[str, np.ndarray]]):
+    """Joint vectors of frames as one ``[N, D]`` array per robot; item ``k`` is the dict
+    ``{robot: joints[k]}`` and slices are tables (a few bytes per frame, no per-frame
+    objects)."""
+
+    def __init__(self, arrays: dict[str, np.ndarray]) -> None:
+        self.arrays = arrays
+        self._n = len(next(iter(arrays.values()))) if arrays else 0
+
+    def __len__(self) -> int:
+        return self._n
+
+    @overload
+    def __getitem__(self, k: int) -> dict[str, np.ndarray]: ...
+
+    @overload
+    def __getitem__(self, k: slice) -> JointTable: ...
+
+    def __getitem__(self, k: int | slice) -> dict[str, np.ndarray] | JointTable:
+        if isinstance(k, slice):
+            return JointTable({r: a[k] for r, a in self.arrays.items()})
+        if not -self._n <= k < self._n:
+            raise IndexError(f"frame {k} out of range ({self._n} frames)")
+        return {r: a[k] for r, a in self.arrays.items()}
+
+
 def _select(
     reader: RecordingReader,
     robot: RobotModel,
     options: AnnotateOptions,
     target: int | None,
     result: RecordingResult,
-) -> tuple[np.ndarray, list[dict[str, np.ndarray]]]:
+) -> tuple[np.ndarray, JointTable]:
     """Stamps (sorted) and URDF-ordered joints of the kept frames; fills ``result`` counts."""
     names = reader.joint_names()
     perms = {
         r: joint_permutation(robot, names[r], f"{reader.path} /{r}/joint_states")
         for r in reader.robots
     }
-    stamps, joints = [], []
+    stamps = np.empty(max(len(reader), 1), dtype=np.int64)
+    table: dict[str, np.ndarray] = {}
+    n = 0
     for frame in reader.frames(decode=False):
-        stamps.append(frame.stamp_ns)
-        joints.append({r: frame.joints[r][perms[r]] for r in reader.robots})
+        if n == len(stamps):  # more frames than left images: grow (not expected)
+            stamps = np.concatenate([stamps, np.empty_like(stamps)])
+            table = {r: np.concatenate([a, np.empty_like(a)]) for r, a in table.items()}
+        stamps[n] = frame.stamp_ns
+        for r in reader.robots:
+            q = frame.joints[r][perms[r]]
+            if r not in table:
+                table[r] = np.empty((len(stamps), len(q)), dtype=q.dtype)
+            table[r][n] = q
+        n += 1
     stats = reader.stats
     skipped = result.skipped
     skipped["no_joint_state"] = stats.skipped_no_joint_state
@@ -245,7 +321,7 @@ def _select(
     skipped["unreadable"] = len(reader.errors)
     result.errors.extend(reader.errors)
     result.frames_total = len(reader)
-    stamps_arr = np.asarray(stamps, dtype=np.int64)
+    stamps_arr = stamps[:n]
     speed = np.zeros(len(stamps_arr))
     for r in reader.robots:
         s, q = reader.joint_samples(r)
@@ -258,7 +334,8 @@ def _select(
     kept = candidates if target is None else thin_evenly(candidates, target)
     skipped["subsampled"] = len(candidates) - len(kept)
     result.frames_kept = len(kept)
-    return stamps_arr[kept], [joints[k] for k in kept]
+    joints = {r: (a[kept] if n else a[:0]) for r, a in table.items()}
+    return stamps_arr[kept], JointTable(joints)
 
 
 def _annotate(
@@ -294,8 +371,11 @@ def _annotate(
         reader.left_topic: mask_topic(options.camera, "left", ROBOT_MASK),
         reader.right_topic: mask_topic(options.camera, "right", ROBOT_MASK),
     }
-    with AnnotatedWriter(out_path) as writer:
-        _copy_and_annotate(reader, writer, renderer, kept_stamps, kept_joints, topics, options)
+    with (
+        MaskStream(renderer, kept_joints, options.png_level, options.workers) as masks,
+        AnnotatedWriter(out_path) as writer,
+    ):
+        _copy_and_annotate(reader, writer, masks, kept_stamps, topics, options)
     log.info(
         "%s: kept %d of %d frames -> %s", path, result.frames_kept, result.frames_total, out_path
     )
@@ -314,9 +394,8 @@ def _nearest(sorted_stamps: np.ndarray, stamp: int, tolerance: int) -> int:
 def _copy_and_annotate(
     reader: RecordingReader,
     writer: AnnotatedWriter,
-    renderer: MaskRenderer,
+    masks: MaskStream,
     kept_stamps: np.ndarray,
-    kept_joints: list[dict[str, np.ndarray]],
     topics: dict[str, str],
     options: AnnotateOptions,
 ) -> None:
@@ -351,8 +430,7 @@ def _copy_and_annotate(
                     if side is None:
                         continue
                     if k not in pending:
-                        masks = renderer.render(kept_joints[k])
-                        pending[k] = [encode_mask_png(m, options.png_level) for m in masks]
+                        pending[k] = masks.get(k)
                     png = pending[k][side]
                     if png is None:
                         continue  # duplicate image message of the same frame

@@ -51,10 +51,13 @@ def cdr_frame_id(data: bytes) -> str:
 
 
 def encode_mask_png(mask: np.ndarray, level: int = 1) -> bytes:
-    """``HxW`` bool mask -> PNG bytes, values 0/255 (``level`` = zlib compression 0-9)."""
-    ok, buf = cv2.imencode(
-        ".png", mask.astype(np.uint8) * 255, [cv2.IMWRITE_PNG_COMPRESSION, int(level)]
-    )
+    """``HxW`` bool mask -> 1-bit grayscale PNG bytes (``level`` = zlib compression 0-9).
+
+    Bilevel PNGs decode to 0/255 (``cv2.IMREAD_GRAYSCALE``, PIL ``convert("L")``) like 8-bit
+    ones, but encode about 5× faster and are smaller, since deflate sees 8× fewer bytes.
+    """
+    params = [cv2.IMWRITE_PNG_COMPRESSION, int(level), cv2.IMWRITE_PNG_BILEVEL, 1]
+    ok, buf = cv2.imencode(".png", np.asarray(mask, dtype=bool).view(np.uint8), params)
     if not ok:
         raise ValueError(f"cv2 could not encode a {mask.shape} mask as PNG")
     return buf.tobytes()

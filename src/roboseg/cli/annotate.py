@@ -40,6 +40,7 @@ def options_from_config(cfg: DictConfig) -> AnnotateOptions:
             tolerance_ns=round(float(cfg.tolerance_ms) * 1e6),
             stereo_tolerance_ns=round(float(cfg.stereo_tolerance_ms) * 1e6),
             png_level=int(cfg.png_level),
+            workers=int(OmegaConf.select(cfg, "workers", default=1)),
         )
     except (TypeError, ValueError) as exc:
         raise RobosegError(f"annotate config: {exc}") from None

@@ -57,6 +57,7 @@ def sim_config(cfg: DictConfig) -> SimConfig:
         undraped_fraction=_number(cfg, "drape.undraped_fraction", float),
         distance=(lo, hi),
         jpeg_quality=_number(cfg, "render.jpeg_quality", int),
+        workers=_number(cfg, "workers", int),
     )
 
 

@@ -8,6 +8,8 @@ so memory does not grow with the recording length.
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import logging
 import os
 import struct
@@ -85,9 +87,9 @@ class ReadStats:
 class _ImageRefs:
     """Header stamps (ns) and locations of the messages of one image/mask topic."""
 
-    stamps: list[int] = field(default_factory=list)
-    chunks: list[int] = field(default_factory=list)
-    positions: list[int] = field(default_factory=list)
+    stamps: array = field(default_factory=lambda: array("q"))
+    chunks: array = field(default_factory=lambda: array("q"))
+    positions: array = field(default_factory=lambda: array("q"))
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         order = np.argsort(np.asarray(self.stamps, dtype=np.int64), kind="stable")
@@ -185,6 +187,8 @@ class RecordingReader:
         self._decoders = DecoderFactory()
         self._plan: dict[str, Any] | None = None
         self._cache: OrderedDict[int, list[bytes]] = OrderedDict()
+        self._camera_infos: dict[str, CameraInfo] = {}  # side -> first CameraInfo
+        self._tf_edges: dict[tuple[str, str], np.ndarray] | None = None
         self.stats = ReadStats()
         with open(self.path, "rb") as f:
             if f.read(len(MAGIC)) != MAGIC:
@@ -371,9 +375,9 @@ class RecordingReader:
                     stamp = msgs.stamp_to_ns(js.header.stamp) or record.log_time
                     self._store_joint_state(index, robot, stamp, js.name, js.position)
             elif topic in wanted_small:  # kept encoded: decoded messages do not pickle
-                index.small.setdefault(topic, []).append(
-                    (schemas.get(channel.schema_id), record.data)
-                )
+                kept = index.small.setdefault(topic, [])
+                if topic == TF_STATIC or not kept:  # only the first CameraInfo is ever used
+                    kept.append((schemas.get(channel.schema_id), record.data))
             position += 1
         index.chunks.append(
             ChunkInfo(chunk_id, offset, chunk.message_start_time, chunk.message_end_time, n_left)
@@ -431,19 +435,20 @@ class RecordingReader:
                 return {m.name: dict(m.metadata) for m in SeekingReader(f).iter_metadata()}
         return dict(self._get_index().metadata)
 
-    def _small_messages(self, topic: str) -> list[Any]:
-        """Decoded messages of a small topic, via the summary when the index is not built."""
+    def _small_messages(self, topic: str, first: bool = False) -> list[Any]:
+        """Decoded messages of a small topic (only the first one with ``first``), via the
+        summary when the index is not built."""
         summary = self._read_summary()
         if summary is not None and self._index is None:
             try:
                 with open(self.path, "rb") as f:
                     reader = SeekingReader(f, decoder_factories=[self._decoders])
-                    return [m.decoded_message for m in reader.iter_decoded_messages([topic])]
+                    decoded = (m.decoded_message for m in reader.iter_decoded_messages([topic]))
+                    return list(itertools.islice(decoded, 1 if first else None))
             except Exception as exc:  # noqa: BLE001 - corrupt chunk: the index pass reports it
                 logger.debug("%s: summary read of %s failed (%s)", self.path, topic, exc)
-        return [
-            self._decode(schema, data) for schema, data in self._get_index().small.get(topic, [])
-        ]
+        stored = self._get_index().small.get(topic, [])
+        return [self._decode(schema, data) for schema, data in stored[: 1 if first else None]]
 
     @property
     def robots(self) -> list[str]:
@@ -461,9 +466,16 @@ class RecordingReader:
         return info.K, info.width, info.height, info.frame_id
 
     def camera_infos(self, side: str = "left") -> CameraInfo:
-        """Full :class:`CameraInfo` (with distortion) of one side of the camera."""
+        """Full :class:`CameraInfo` (with distortion) of one side of the camera (the first
+        message; decoded once)."""
+        if side not in self._camera_infos:
+            self._camera_infos[side] = self._first_camera_info(side)
+        info = self._camera_infos[side]
+        return dataclasses.replace(info, K=info.K.copy(), D=info.D.copy())
+
+    def _first_camera_info(self, side: str) -> CameraInfo:
         topic = camera_info_topic(self.camera, side)
-        found = self._small_messages(topic)
+        found = self._small_messages(topic, first=True)
         if not found:
             raise RecordingError(
                 f"{self.path}: no CameraInfo for camera '{self.camera}' {side} (topic {topic})"
@@ -489,6 +501,11 @@ class RecordingReader:
 
     def tf_static(self) -> dict[tuple[str, str], np.ndarray]:
         """``{(parent, child): T_parent_child}`` (4x4, metres) from every ``/tf_static`` msg."""
+        if self._tf_edges is None:
+            self._tf_edges = self._read_tf_static()
+        return {edge: T.copy() for edge, T in self._tf_edges.items()}
+
+    def _read_tf_static(self) -> dict[tuple[str, str], np.ndarray]:
         edges: dict[tuple[str, str], np.ndarray] = {}
         for message in self._small_messages(TF_STATIC):
             for ts in message.transforms:

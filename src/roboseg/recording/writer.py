@@ -41,12 +41,15 @@ def encode_image(image: np.ndarray, fmt: str = "jpeg", quality: int = 90) -> byt
     return buf.tobytes()
 
 
-def encode_mask(mask: np.ndarray) -> bytes:
-    """Encode an ``HxW`` bool/uint8 mask (nonzero = robot) as a PNG with values 0/255."""
+def encode_mask(mask: np.ndarray, level: int = 1) -> bytes:
+    """Encode an ``HxW`` bool/uint8 mask (nonzero = robot) as a 1-bit grayscale PNG, which
+    decodes to values 0/255 (``level``: zlib compression 0-9; bilevel is ~5× faster to encode
+    than 8-bit)."""
     mask = np.asarray(mask)
     if mask.ndim != 2:
         raise ValueError(f"mask must be HxW, got shape {mask.shape}")
-    ok, buf = cv2.imencode(".png", np.where(mask != 0, 255, 0).astype(np.uint8))
+    params = [cv2.IMWRITE_PNG_COMPRESSION, int(level), cv2.IMWRITE_PNG_BILEVEL, 1]
+    ok, buf = cv2.imencode(".png", (mask != 0).view(np.uint8), params)
     if not ok:
         raise ValueError(f"cv2 could not encode a {mask.shape} mask as PNG")
     return buf.tobytes()

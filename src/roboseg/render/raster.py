@@ -17,6 +17,7 @@ spans, so their silhouettes are identical.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -29,7 +30,9 @@ from roboseg.errors import CameraError
 PAIR_CHUNK = 1 << 20
 #: Triangles (views × faces) set up at once.
 TRIANGLE_CHUNK = 1 << 20
-_EMPTY_KEY = torch.iinfo(torch.int64).max
+#: Key of an empty pixel: +inf depth above face -1 (0xFFFFFFFF), larger than any surface's key.
+_EMPTY_KEY = (0x7F800000 << 32) | 0xFFFFFFFF
+_LOW, _HIGH = (0, 1) if sys.byteorder == "little" else (1, 0)  # int32 halves of an int64
 
 
 @dataclass(frozen=True)
@@ -49,8 +52,10 @@ class _Triangles:
     face: torch.Tensor  # [T] int64 face index
     row0: torch.Tensor  # [T] int64 first pixel row (inside the image)
     rows: torch.Tensor  # [T] int64 number of pixel rows (>= 1)
-    edges: torch.Tensor  # [T, 12] float, see :func:`_edge_table`
-    depth: torch.Tensor | None  # [T, 5] (u0, v0, 1/z0, d(1/z)/du, d(1/z)/dv) or None
+    edges: torch.Tensor  # [12, T] float, see :func:`_edge_table`
+    depth: torch.Tensor | None  # [5, T] (u0, v0, 1/z0, d(1/z)/du, d(1/z)/dv) or None
+    first_view: int  # views first_view ... first_view + views - 1 are set up here
+    views: int
 
 
 @dataclass
@@ -95,23 +100,23 @@ def rasterize(
         assert tris.depth is not None
         for spans in _span_chunks(tris, width):
             # per span: flat index, 1/z at its first pixel and d(1/z)/du; face in the low word
-            d = tris.depth.index_select(0, spans.tri)  # [S, 5]
+            d = tris.depth.index_select(1, spans.tri)  # [5, S]
             u0 = spans.u0.to(d.dtype)
-            inv_z0 = d[:, 2] + d[:, 3] * (u0 - d[:, 0]) + d[:, 4] * (spans.row - d[:, 1])
+            inv_z0 = d[2] + d[3] * (u0 - d[0]) + d[4] * (spans.row - d[1])
             start = (tris.view.index_select(0, spans.tri) * height + spans.row) * width + spans.u0
             face = tris.face.index_select(0, spans.tri)
             for s, du in _pixel_chunks(spans.u1 - spans.u0 + 1):
-                inv_z = inv_z0.index_select(0, s) + d[:, 3].index_select(0, s) * du
+                inv_z = inv_z0.index_select(0, s) + d[3].index_select(0, s) * du
                 z = (1.0 / inv_z.clamp_min(1e-30)).to(torch.float32)  # > 0: keys order by depth
                 key = (z.view(torch.int32).to(torch.int64) << 32) | face.index_select(0, s)
                 pix = start.index_select(0, s) + du
                 buffer.scatter_reduce_(0, pix, key, reduce="amin")
-    buffer = buffer.view(B, height, width)
-    mask = buffer != _EMPTY_KEY
-    depth = (buffer >> 32).to(torch.int32).view(torch.float32)
-    depth = torch.where(mask, depth, torch.full_like(depth, float("inf")))
-    face_id = torch.where(mask, buffer & 0xFFFFFFFF, torch.full_like(buffer, -1))
-    return Raster(depth=depth, face_id=face_id, mask=mask)
+    # the high word of a key is the depth's float32 bits (+inf when empty), the low word the
+    # face index (-1 when empty)
+    halves = buffer.view(torch.int32).view(B, height, width, 2)
+    depth = halves[..., _HIGH].view(torch.float32).contiguous()
+    face_id = halves[..., _LOW].to(torch.int64)
+    return Raster(depth=depth, face_id=face_id, mask=face_id >= 0)
 
 
 def render_hard(
@@ -125,22 +130,41 @@ def render_hard(
 ) -> torch.Tensor:
     """Silhouette [B, H, W] bool only (no depth test); same inputs and rule as :func:`rasterize`.
 
-    Every span adds +1 at its first column and -1 after its last one in a [B, H, W + 1]
-    difference image; a pixel is covered iff the running sum along its row is positive.
+    Every span adds +1 at its first column and -1 after its last one in a [B, rows, W + 1]
+    difference image (the rows the triangles cross); a pixel is covered iff the running sum
+    along its row is positive. The running sum is only taken inside the box of rows and
+    columns the spans touch (outside it the difference image is zero), which is most of the
+    work saved for small silhouettes.
     """
     verts_cam, faces, K = _check_inputs(verts_cam, faces, K, height, width, z_near)
     B = verts_cam.shape[0]
     stride = width + 1
-    diff = torch.zeros(B * height * stride, dtype=torch.int32, device=verts_cam.device)
+    device = verts_cam.device
+    covered = torch.zeros(B, height, width, dtype=torch.bool, device=device)
     for tris in _triangle_chunks(
         verts_cam, faces, K, height, width, z_near, False, cull_back_faces
     ):
+        # the difference image of this chunk's views spans only the rows its triangles cross
+        top, bottom = torch.stack([tris.row0.min(), (tris.row0 + tris.rows).max()]).tolist()
+        rows = bottom - top
+        diff = torch.zeros(tris.views, rows, stride, dtype=torch.int32, device=device)
+        flat = diff.view(-1)
+        lows, highs = [], []  # (row, column) bounds of the spans of each chunk
         for spans in _span_chunks(tris, width):
-            start = (tris.view.index_select(0, spans.tri) * height + spans.row) * stride + spans.u0
+            view = tris.view.index_select(0, spans.tri) - tris.first_view
+            start = (view * rows + spans.row - top) * stride + spans.u0
             ones = torch.ones_like(start, dtype=torch.int32)
-            diff.index_add_(0, start, ones)
-            diff.index_add_(0, start + (spans.u1 - spans.u0 + 1), -ones)
-    covered = diff.view(B, height, stride).cumsum(dim=2, dtype=torch.int32)[..., :width] > 0
+            flat.index_add_(0, start, ones)
+            flat.index_add_(0, start + (spans.u1 - spans.u0 + 1), -ones)
+            lows.append(torch.stack([spans.row.min(), spans.u0.min()]))
+            highs.append(torch.stack([spans.row.max(), spans.u1.max()]))
+        if not lows:
+            continue
+        r0, c0 = torch.stack(lows).amin(dim=0).tolist()
+        r1, c1 = torch.stack(highs).amax(dim=0).tolist()
+        v0, v1 = tris.first_view, tris.first_view + tris.views
+        block = diff[:, r0 - top : r1 - top + 1, c0 : c1 + 1]
+        covered[v0:v1, r0 : r1 + 1, c0 : c1 + 1] = block.cumsum(dim=2, dtype=torch.int32) > 0
     return covered
 
 
@@ -194,20 +218,20 @@ def _triangle_chunks(
     B, F = verts_cam.shape[0], faces.shape[0]
     if F == 0:
         return
-    corners = faces.T.reshape(-1)  # corner-major: all first corners, then second, third
+    corners = torch.stack(faces.unbind(1))  # [3, F] vertex of each face's first, second, third
     views = max(1, TRIANGLE_CHUNK // F)
     for b0 in range(0, B, views):
         b1 = min(B, b0 + views)
         v = verts_cam[b0:b1]
-        uvz = torch.cat([project(v, K[b0:b1]), v[..., 2:3]], dim=-1)  # [b, V, 3]
-        tris = _setup(uvz, faces, corners, b0, height, width, z_near, with_depth, cull_back_faces)
+        uv = project(v, K[b0:b1]).movedim(-1, 0)  # [2, b, V]
+        uvz = torch.cat([uv, v[..., 2].unsqueeze(0)])  # [3, b, V] rows u, v, z
+        tris = _setup(uvz, corners, b0, height, width, z_near, with_depth, cull_back_faces)
         if tris is not None:
             yield tris
 
 
 def _setup(
     uvz: torch.Tensor,
-    faces: torch.Tensor,
     corners: torch.Tensor,
     first_view: int,
     height: int,
@@ -216,83 +240,89 @@ def _setup(
     with_depth: bool,
     cull_back_faces: bool,
 ) -> _Triangles | None:
-    """Cull the triangles of views ``uvz`` [b, V, (u, v, z)] and set up their edges.
+    """Cull the triangles ``corners`` [3, F] (vertex indices) of views ``uvz`` [(u, v, z), b, V]
+    and set up their edges.
 
-    Culling works on small integers: per vertex, the pixel-centre bounds ceil/floor of u and v
-    (clamped to [-1, size], which keeps every decision) and, if any vertex is nearer than
-    z_near, a flag z >= z_near; a triangle survives iff min ceil <= max floor on both axes
-    inside the image and all its flags are set. Degenerate triangles (|2·area| <= 1e-9 px²)
-    are dropped, and with ``cull_back_faces`` those with positive image-space area: with every
+    A triangle survives iff its pixel-centre bounds ceil(min) <= floor(max) meet the image on
+    both axes, all its corners have z >= z_near, and it is not degenerate (|2·area| <= 1e-9
+    px²); with ``cull_back_faces`` also iff its image-space area is negative: with every
     z > 0, sign(2·area) = sign(a · ((b - a) × (c - a))) for the camera-frame corners a, b, c.
+    Every decision is taken on all (view, face) pairs at once from per-corner coordinates
+    gathered row-wise ([k, n] tensors gather fast along dim 1); survivors are compacted once.
     """
-    nb, V, _ = uvz.shape
-    F = faces.shape[0]
-    small = torch.int16 if max(height, width) < 32000 else torch.int32
-    u, v = uvz[..., 0].nan_to_num(-1.0), uvz[..., 1].nan_to_num(-1.0)
-    good = uvz[..., 2] >= z_near
-    bounds = [torch.ceil(u).clamp_(-1, width), torch.ceil(v).clamp_(-1, height)]
-    bounds += [torch.floor(u).clamp_(-1, width), torch.floor(v).clamp_(-1, height)]
-    if not bool(good.all()):  # the flag needs a channel of its own (min over the corners)
-        bounds.append(good.to(uvz.dtype))
-    rounded = torch.stack(bounds, dim=-1).to(small)  # [b, V, 4 or 5]
-    nc = rounded.shape[-1]
-    tri = rounded.index_select(1, corners).view(nb, 3, F, nc)
-    lo = torch.minimum(torch.minimum(tri[:, 0], tri[:, 1]), tri[:, 2])  # [b, F, nc]
-    hi = torch.maximum(torch.maximum(tri[:, 0], tri[:, 1]), tri[:, 2])
-    keep = lo[..., 0].clamp_min(0) <= hi[..., 2].clamp_max(width - 1)
-    keep &= lo[..., 1].clamp_min(0) <= hi[..., 3].clamp_max(height - 1)
-    if nc == 5:
-        keep &= lo[..., 4] > 0
-    idx = keep.view(-1).nonzero().squeeze(1)
+    _, nb, V = uvz.shape
+    F = corners.shape[1]
+    n = nb * F  # (view, face) pairs, view-major
+    base = torch.arange(nb, device=uvz.device) * V
+    vert = (corners[:, None, :] + base[None, :, None]).view(-1)  # [corner, view, face]
+    x, y, z = uvz.reshape(3, nb * V).index_select(1, vert).view(3, 3, n).unbind(0)  # [corner, n]
+    x0, x1, x2 = x.unbind(0)
+    y0, y1, y2 = y.unbind(0)
+    area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)  # twice the signed area
+    lo_v = torch.ceil(torch.minimum(torch.minimum(y0, y1), y2))
+    hi_v = torch.floor(torch.maximum(torch.maximum(y0, y1), y2))
+    lo_u = torch.ceil(torch.minimum(torch.minimum(x0, x1), x2))
+    hi_u = torch.floor(torch.maximum(torch.maximum(x0, x1), x2))
+    keep = lo_u.clamp_min(0) <= hi_u.clamp_max(width - 1)
+    keep &= lo_v.clamp_min(0) <= hi_v.clamp_max(height - 1)
+    keep &= area2.abs() > 1e-9
+    keep &= (z >= z_near).all(dim=0)
+    if cull_back_faces:
+        keep &= area2 < 0
+    idx = keep.nonzero().squeeze(1)
     if idx.numel() == 0:
         return None
-    b, f = torch.div(idx, F, rounding_mode="floor"), idx % F
-    row0 = lo[..., 1].reshape(-1).index_select(0, idx).to(torch.int64).clamp_(min=0)
-    row1 = hi[..., 3].reshape(-1).index_select(0, idx).to(torch.int64).clamp_(max=height - 1)
-    T = idx.numel()
-    vert = (b * V).repeat(3) + faces.index_select(0, f).T.reshape(-1)  # corner-major [3T]
-    p = uvz.reshape(nb * V, 3).index_select(0, vert).T.reshape(3, 3, T)
-    x, y = p[0], p[1]  # [corner, T]
+    parts = [x, y, z] if with_depth else [x, y]
+    table = torch.cat([*parts, area2[None], lo_v[None], hi_v[None]]).index_select(1, idx)
+    x, y, z, (area2, lo_v, hi_v) = _split(table, 3 * len(parts))
+    row0 = lo_v.clamp_(min=0).to(torch.int64)
+    row1 = hi_v.clamp_(max=height - 1).to(torch.int64)
+    b = torch.div(idx, F, rounding_mode="floor")
+    f = idx - b * F
     xj, yj = x.roll(-1, dims=0), y.roll(-1, dims=0)  # start of edge j -> k: 1 -> 2, 2 -> 0, 0 -> 1
     dx, dy = x.roll(-2, dims=0) - xj, y.roll(-2, dims=0) - yj  # [3, T]
-    area2 = dx[2] * (y[2] - y[0]) - dy[2] * (x[2] - x[0])  # twice the signed area
-    ok = area2.abs() > 1e-9
-    if cull_back_faces:
-        ok &= area2 < 0
-    sel = ok.nonzero().squeeze(1)
-    if sel.numel() == 0:
-        return None
-    if sel.numel() < 0.9 * T:  # drop many (back faces); give a few (degenerate) no rows
-        b, f, row0, row1 = (a.index_select(0, sel) for a in (b, f, row0, row1))
-        xj, yj, dx, dy, p = (a.index_select(-1, sel) for a in (xj, yj, dx, dy, p))
-        area2 = area2.index_select(0, sel)
-    elif sel.numel() < T:
-        row1 = torch.where(ok, row1, row0 - 1)
     edges = _edge_table(xj, yj, dx, dy, area2, row0)
     depth = None
     if with_depth:
+        assert z is not None
         # 1/z = sum_i l_i / z_i with barycentrics l_i = E_i / (2·area): affine in (u, v)
-        w = 1.0 / (p[2] * area2)  # [3, T]
+        w = 1.0 / (z * area2)  # [3, T]
         d_du = -(dy * w).sum(dim=0)
         d_dv = (dx * w).sum(dim=0)
-        depth = torch.stack([p[0, 0], p[1, 0], 1.0 / p[2, 0], d_du, d_dv], dim=1)
-    return _Triangles(b + first_view, f, row0, row1 - row0 + 1, edges, depth)
+        depth = torch.stack([x[0], y[0], 1.0 / z[0], d_du, d_dv])
+    return _Triangles(b + first_view, f, row0, row1 - row0 + 1, edges, depth, first_view, nb)
+
+
+def _split(
+    table: torch.Tensor, rows: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """(x [3, T], y [3, T], z [3, T] or None, [area2, lo_v, hi_v] [3, T]) of a compacted table
+    whose first ``rows`` rows are x, y (and z), followed by area2, lo_v and hi_v."""
+    x, y = table[0:3], table[3:6]
+    z = table[6:9] if rows == 9 else None
+    return x, y, z, table[rows:]
 
 
 def _span_chunks(tris: _Triangles, width: int) -> Iterator[_Spans]:
     """Non-empty spans of every row of every triangle, at most :data:`PAIR_CHUNK` rows at a
     time (a triangle with more rows forms its own chunk)."""
     for t, dv in _pixel_chunks(tris.rows):
-        e = tris.edges.index_select(0, t)
-        dv_f = dv.to(e.dtype)[:, None]
-        left = (e[:, 0:3] + e[:, 3:6] * dv_f).amax(dim=1)
-        right = (e[:, 6:9] + e[:, 9:12] * dv_f).amin(dim=1)
-        row = tris.row0.index_select(0, t) + dv
-        u0 = torch.ceil(left.clamp(-1.0, width)).to(torch.int64).clamp_(min=0)
-        u1 = torch.floor(right.clamp(-1.0, width)).to(torch.int64).clamp_(max=width - 1)
+        e = tris.edges.index_select(1, t)  # [12, P]
+        dv_f = dv.to(e.dtype)
+        left = torch.maximum(
+            torch.maximum(e[0] + e[3] * dv_f, e[1] + e[4] * dv_f), e[2] + e[5] * dv_f
+        )
+        right = torch.minimum(
+            torch.minimum(e[6] + e[9] * dv_f, e[7] + e[10] * dv_f), e[8] + e[11] * dv_f
+        )
+        u0 = torch.ceil(left.clamp_(-1.0, width)).to(torch.int64).clamp_(min=0)
+        u1 = torch.floor(right.clamp_(-1.0, width)).to(torch.int64).clamp_(max=width - 1)
         keep = (u0 <= u1).nonzero().squeeze(1)
-        if keep.numel():
-            yield _Spans(t[keep], row[keep], u0[keep], u1[keep])
+        if keep.numel() == 0:
+            continue
+        if keep.numel() < t.numel():
+            t, dv, u0, u1 = (a.index_select(0, keep) for a in (t, dv, u0, u1))
+        yield _Spans(t, tris.row0.index_select(0, t) + dv, u0, u1)
 
 
 def _edge_table(
@@ -303,7 +333,7 @@ def _edge_table(
     area2: torch.Tensor,
     row0: torch.Tensor,
 ) -> torch.Tensor:
-    """[T, 12] per-triangle table of the bounds of the spans, in pixels: (left u at ``row0``
+    """[12, T] per-triangle table of the bounds of the spans, in pixels: (left u at ``row0``
     [3], left du/dv [3], right u at ``row0`` [3], right du/dv [3]) of the edges j -> k starting
     at (xj, yj) [3, T] with extent (dx, dy) [3, T], so that a row ``row0 + dv`` spans
     ``max(left + dv·dleft) <= u <= min(right + dv·dright)``.
@@ -318,16 +348,17 @@ def _edge_table(
     slope = torch.where(flat, torch.zeros_like(dx), dx / torch.where(flat, 1.0, dy))
     start = xj + slope * (row0.to(xj.dtype) - yj)
     turn = dy * area2
+    left, right = turn < 0, turn > 0
     zero = torch.zeros_like(start)
     return torch.cat(
         [
-            torch.where(turn < 0, start, -torch.inf),
-            torch.where(turn < 0, slope, zero),
-            torch.where(turn > 0, start, torch.inf),
-            torch.where(turn > 0, slope, zero),
+            torch.where(left, start, -torch.inf),
+            torch.where(left, slope, zero),
+            torch.where(right, start, torch.inf),
+            torch.where(right, slope, zero),
         ],
         dim=0,
-    ).T.contiguous()
+    )
 
 
 def _pixel_chunks(count: torch.Tensor) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:

@@ -241,31 +241,30 @@ def draw_capsules(
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     shift = 4  # sub-pixel bits for cv2 drawing
     scale = float(1 << shift)
-    for i in np.argsort(-zmid, kind="stable"):
-        a, b, cap = p0[i], p1[i], capsules[i]
-        if a[2] < z_near or b[2] < z_near:
-            continue
-        ua = (fx * a[0] / a[2] + cx, fy * a[1] / a[2] + cy)
-        ub = (fx * b[0] / b[2] + cx, fy * b[1] / b[2] + cy)
-        if max(abs(ua[0]), abs(ua[1]), abs(ub[0]), abs(ub[1])) > 1e5:
-            continue
+    # every capsule's end points (pixels, then fixed point) and thickness at once
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ends = np.stack(
+            [fx * p0[:, 0] / p0[:, 2] + cx, fy * p0[:, 1] / p0[:, 2] + cy,
+             fx * p1[:, 0] / p1[:, 2] + cx, fy * p1[:, 1] / p1[:, 2] + cy],
+            axis=1,
+        )  # fmt: skip
+        radius = np.array([c.radius for c in capsules])
         # cv2 draws thickness t about t + 1 pixels wide
-        thick = max(1, int(round(2.0 * fx * cap.radius / zmid[i])) - 1)
-        pa = (int(round(ua[0] * scale)), int(round(ua[1] * scale)))
-        pb = (int(round(ub[0] * scale)), int(round(ub[1] * scale)))
+        thick = np.maximum(1, np.rint(2.0 * fx * radius / zmid).astype(np.int64) - 1)
+    usable = (p0[:, 2] >= z_near) & (p1[:, 2] >= z_near) & (np.abs(ends).max(axis=1) <= 1e5)
+    fixed = np.zeros(ends.shape, np.int64)
+    fixed[usable] = np.rint(ends[usable] * scale).astype(np.int64)
+    for i in np.argsort(-zmid, kind="stable"):
+        if not usable[i]:
+            continue
+        cap = capsules[i]
+        pa, pb = (int(fixed[i, 0]), int(fixed[i, 1])), (int(fixed[i, 2]), int(fixed[i, 3]))
+        th = int(thick[i])
         col = np.asarray(cap.colour, np.float32)
-        cv2.line(rgb, pa, pb, tuple(float(x) for x in col * 0.7), thick, cv2.LINE_8, shift)
-        if thick >= 3:
-            inner = max(1, thick // 2)
-            cv2.line(
-                rgb,
-                pa,
-                pb,
-                tuple(float(x) for x in np.minimum(col * 1.15, 1.0)),
-                inner,
-                cv2.LINE_8,
-                shift,
-            )
-        cv2.line(depth, pa, pb, float(zmid[i]), thick, cv2.LINE_8, shift)
-        cv2.line(alpha, pa, pb, float(cap.alpha), thick, cv2.LINE_8, shift)
+        cv2.line(rgb, pa, pb, tuple((col * 0.7).tolist()), th, cv2.LINE_8, shift)
+        if th >= 3:
+            light = tuple(np.minimum(col * 1.15, 1.0).tolist())
+            cv2.line(rgb, pa, pb, light, max(1, th // 2), cv2.LINE_8, shift)
+        cv2.line(depth, pa, pb, float(zmid[i]), th, cv2.LINE_8, shift)
+        cv2.line(alpha, pa, pb, float(cap.alpha), th, cv2.LINE_8, shift)
     return rgb, depth, alpha

@@ -175,8 +175,17 @@ class NoiseBank:
         self.bank = rng.standard_normal(shape, dtype=np.float32)
 
     def sample(self) -> np.ndarray:
+        """A random window: :meth:`window` of :meth:`draw`."""
+        return self.window(*self.draw())
+
+    def draw(self) -> tuple[int, int]:
+        """Random top-left corner ``(dy, dx)`` of a window (advances the generator)."""
         dy = int(self.rng.integers(0, self.bank.shape[0] - self.height + 1))
         dx = int(self.rng.integers(0, self.bank.shape[1] - self.width + 1))
+        return dy, dx
+
+    def window(self, dy: int, dx: int) -> np.ndarray:
+        """The ``[H, W, 3]`` window of the bank at top-left corner ``(dy, dx)``."""
         return self.bank[dy : dy + self.height, dx : dx + self.width]
 
 
@@ -190,11 +199,20 @@ def to_uint8(
 ) -> np.ndarray:
     """Camera pipeline: linear RGB ``[H, W, 3]`` × exposure × per-channel white balance, optional
     Gaussian blur (pixels), sRGB gamma, additive sensor noise ``noise_sigma · noise`` (σ in
-    8-bit levels, ``noise`` unit Gaussian ``[H, W, 3]``), rounded to uint8."""
-    img = linear_rgb.astype(np.float32) * (exposure * np.asarray(white_balance, np.float32))
+    8-bit levels, ``noise`` unit Gaussian ``[H, W, 3]``), rounded to uint8.
+
+    float32 throughout; the per-channel gain and the final add-and-round run in OpenCV (one
+    pass each), the gamma by table lookup (:func:`srgb_lut`)."""
+    gain = exposure * np.asarray(white_balance, np.float32)  # float32 (weak Python scalar)
+    img = cv2.multiply(np.asarray(linear_rgb, np.float32), (*(float(g) for g in gain), 0.0))
     if blur_sigma > 0.05:
         img = cv2.GaussianBlur(img, (0, 0), blur_sigma)
-    img = srgb_lut(np.clip(img, 0.0, 1.0))
+    np.clip(img, 0.0, 1.0, out=img)
+    img *= np.float32(_LUT_SIZE - 1)
+    img += np.float32(0.5)
+    img = _SRGB_LUT[img.astype(np.int32)]
     if noise_sigma > 0 and noise is not None:
-        img += np.float32(noise_sigma) * noise
+        # img + σ·noise, rounded half to even and saturated to [0, 255]
+        sigma = float(np.float32(noise_sigma))
+        return cv2.addWeighted(img, 1.0, noise, sigma, 0.0, dtype=cv2.CV_8U)
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)

@@ -14,9 +14,14 @@ World frame = base frame of robot 0 (z up, metres). ``/tf_static`` holds
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
+import multiprocessing
 import time
+from collections import deque
+from collections.abc import Iterator
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,8 +30,9 @@ import torch
 
 from roboseg.camera import StereoRig, look_at
 from roboseg.errors import RobosegError
+from roboseg.recording import msgs
 from roboseg.recording.topics import camera_info_topic, image_topic, joint_states_topic, mask_topic
-from roboseg.recording.writer import RecordingWriter
+from roboseg.recording.writer import RecordingWriter, encode_image, encode_mask
 from roboseg.render.raster import rasterize
 from roboseg.robot import RobotModel, load_robot
 from roboseg.sim.drape import Drape, DrapeParams, sample_drape_params
@@ -70,11 +76,14 @@ class SimConfig:
     undraped_fraction: float = 0.35
     distance: tuple[float, float] = (1.0, 2.5)
     jpeg_quality: int = 90
+    workers: int = 1  # processes rendering frames (<= 1: in the calling process)
 
     def validate(self) -> None:
         """Raise :class:`RobosegError` naming the first invalid value."""
         if self.frames < 1:
             raise RobosegError(f"frames must be >= 1, got {self.frames}")
+        if self.workers < 0:
+            raise RobosegError(f"workers must be >= 0, got {self.workers}")
         if self.robots not in (1, 2):
             raise RobosegError(f"robots must be 1 or 2, got {self.robots}")
         if self.width < 16 or self.height < 16:
@@ -102,6 +111,7 @@ class SimSummary:
     drape_start_stamp_ns: int | None
     seconds: float
     drape_kinds: list[str] = field(default_factory=list)
+    setup_seconds: float = 0.0  # robots, drapes, static room (ray cast), before the first frame
 
 
 def frame_stamps(n: int, fps: float) -> np.ndarray:
@@ -319,13 +329,20 @@ def simulate_recording(cfg: SimConfig, path: str | Path) -> SimSummary:
         ]
         tf.append((LEFT_FRAME, RIGHT_FRAME, np.linalg.inv(T_right_left)))
         writer.write_tf_static(tf, int(stamps[0]))
-        for i in range(n_frames):
-            _write_frame(writer, cfg, world, i, int(stamps[i]), i >= n_u)
+        setup = time.perf_counter() - t_start
+        for i, frame in enumerate(_rendered_frames(world, cfg, n_u)):
+            _write_frame(writer, world, int(stamps[i]), frame)
     seconds = time.perf_counter() - t_start
-    log.info("wrote %s: %d frames (%d undraped) in %.1f s", path, n_frames, n_u, seconds)
-    return SimSummary(
-        path, n_frames, n_u, drape_start, seconds, [r.drape.params.kind for r in robots]
+    log.info(
+        "wrote %s: %d frames (%d undraped) in %.1f s (setup %.1f s)",
+        path,
+        n_frames,
+        n_u,
+        seconds,
+        setup,
     )
+    kinds = [r.drape.params.kind for r in robots]
+    return SimSummary(path, n_frames, n_u, drape_start, seconds, kinds, setup)
 
 
 def _build_cameras(
@@ -343,15 +360,20 @@ def _build_cameras(
     return out
 
 
-def _write_frame(
-    writer: RecordingWriter,
-    cfg: SimConfig,
-    world: _World,
-    i: int,
-    stamp: int,
-    draped: bool,
-) -> None:
-    """Render both views of frame ``i`` and write its messages (all at ``stamp``)."""
+@dataclass
+class _FrameData:
+    """Everything written for one frame: joints per robot, then per camera JPEG and mask PNG."""
+
+    joints: list[list[float]]
+    jpegs: list[bytes]
+    masks: list[bytes]
+
+
+def _render_frame(
+    world: _World, cfg: SimConfig, i: int, draped: bool, noise: list[tuple[int, int]]
+) -> _FrameData:
+    """Render and encode both views of frame ``i``; ``noise`` holds the noise-bank window of
+    each camera (drawn in frame order by the caller, so workers need no random state)."""
     t = i / cfg.fps
     state = world.lighting.at(t)
     robots, cameras = world.robots, world.cameras
@@ -359,11 +381,8 @@ def _write_frame(
     robot_v, robot_f, albedo, cloth_v, cloth_f, tint = [], [], [], [], [], []
     v_off = d_off = 0
     drape_params: DrapeParams | None = None
-    for k, r in enumerate(robots):
+    for r in robots:
         q = torch.as_tensor(r.q[i : i + 1], dtype=torch.float32)
-        writer.write_joint_state(
-            joint_states_topic(f"robot_{k}"), stamp, r.full.joint_names, r.q[i].tolist()
-        )
         robot_v.append(_transform(r.T_world_base, r.full.posed_vertices(q)[0]))
         robot_f.append(r.full.faces + v_off)
         albedo.append(r.albedo)
@@ -386,6 +405,7 @@ def _write_frame(
         if draped
         else None
     )
+    jpegs, masks = [], []
     for c, cam in enumerate(cameras):
         H, W = cam.static_depth.shape
         light_cam = torch.as_tensor(cam.T_cam_world[:3, :3] @ state.light_dir, dtype=torch.float32)
@@ -405,23 +425,79 @@ def _write_frame(
             state.exposure,
             state.white_balance,
             world.noise_sigma,
-            world.noise.sample(),
+            world.noise.window(*noise[c]),
             world.blur_sigma,
         )
-        writer.write_image(
-            image_topic(side=cam.side),
+        jpegs.append(encode_image(rgb, "jpeg", cfg.jpeg_quality))
+        # the label: the full model's silhouette, whatever covers it
+        masks.append(encode_mask((robot[c].face_id >= 0).numpy()))
+    return _FrameData([r.q[i].tolist() for r in robots], jpegs, masks)
+
+
+def _write_frame(writer: RecordingWriter, world: _World, stamp: int, frame: _FrameData) -> None:
+    """Write the messages of one rendered frame (all at ``stamp``)."""
+    for k, r in enumerate(world.robots):
+        writer.write_joint_state(
+            joint_states_topic(f"robot_{k}"), stamp, r.full.joint_names, frame.joints[k]
+        )
+    for c, cam in enumerate(world.cameras):
+        H, W = cam.static_depth.shape
+        writer.write_compressed(
+            image_topic(side=cam.side), stamp, cam.frame_id, frame.jpegs[c], msgs.JPEG_FORMAT
+        )
+        writer.write_compressed(
+            mask_topic(side=cam.side, kind="robot_mask_gt"),
             stamp,
             cam.frame_id,
-            rgb,
-            fmt="jpeg",
-            quality=cfg.jpeg_quality,
-        )
-        # the label: the full model's silhouette, whatever covers it
-        mask = (robot[c].face_id >= 0).numpy()
-        writer.write_mask(
-            mask_topic(side=cam.side, kind="robot_mask_gt"), stamp, cam.frame_id, mask
+            frame.masks[c],
+            msgs.PNG_MASK_FORMAT,
         )
         writer.write_camera_info(camera_info_topic(side=cam.side), stamp, cam.frame_id, cam.K, W, H)
+
+
+_WORKER_WORLD: tuple[_World, SimConfig] | None = None
+
+
+def _init_worker(world: _World, cfg: SimConfig) -> None:
+    """Pool initializer: the recording's world (inherited, not pickled, under ``fork``)."""
+    global _WORKER_WORLD
+    torch.set_num_threads(1)
+    _WORKER_WORLD = (world, cfg)
+
+
+def _render_batch(jobs: list[tuple[int, bool, list[tuple[int, int]]]]) -> list[_FrameData]:
+    assert _WORKER_WORLD is not None, "worker not initialised"
+    world, cfg = _WORKER_WORLD
+    return [_render_frame(world, cfg, i, draped, noise) for i, draped, noise in jobs]
+
+
+def _rendered_frames(
+    world: _World, cfg: SimConfig, n_undraped: int, batch: int = 2, ahead: int = 2
+) -> Iterator[_FrameData]:
+    """Every frame in order, rendered here or (``cfg.workers > 1``) by a process pool with at
+    most ``ahead`` batches per worker in flight. Noise windows are drawn here in frame order,
+    so the output does not depend on the number of workers."""
+    jobs = (
+        (i, i >= n_undraped, [world.noise.draw() for _ in world.cameras]) for i in range(cfg.frames)
+    )
+    if cfg.workers <= 1 or cfg.frames <= batch:
+        for i, draped, noise in jobs:
+            yield _render_frame(world, cfg, i, draped, noise)
+        return
+    methods = multiprocessing.get_all_start_methods()
+    ctx = multiprocessing.get_context("fork" if "fork" in methods else "spawn")
+    with ProcessPoolExecutor(
+        cfg.workers, mp_context=ctx, initializer=_init_worker, initargs=(world, cfg)
+    ) as pool:
+        pending: deque[Future] = deque()
+        while True:
+            chunk = list(itertools.islice(jobs, batch))
+            if chunk:
+                pending.append(pool.submit(_render_batch, chunk))
+            if pending and (not chunk or len(pending) >= ahead * cfg.workers):
+                yield from pending.popleft().result()
+            if not chunk and not pending:
+                return
 
 
 def front_faces(verts_world: torch.Tensor, faces: torch.Tensor, eyes: torch.Tensor) -> torch.Tensor:
