@@ -482,3 +482,22 @@ def test_register_reports_frames_without_joint_states(recording: dict, tmp_path:
     # frames 0..4 have no joint state at or before them within tolerance: dropped, and said so
     assert "5 frames: no joint state within tolerance" in reg.dropped, reg.dropped
     assert all(c.stamp_ns >= stamps[5] for c in reg.configurations)
+
+
+def test_config_carries_boundary_offset_and_screening() -> None:
+    from roboseg.cli.register import config_from_cfg
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        cfg = compose(
+            "register",
+            overrides=["recording=a.mcap", "screen_iterations=12", "sdr.boundary_offset=2.5"],
+        )
+    reg = config_from_cfg(cfg)
+    assert reg.screen_iterations == 12
+    assert reg.sdr.boundary_offset == 2.5 and reg.prior.sdr.boundary_offset == 2.5
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
+        default = config_from_cfg(compose("register", overrides=["recording=a.mcap"]))
+    assert default.sdr.boundary_offset == RegisterConfig().sdr.boundary_offset == 4.0
+    assert default.screen_iterations == RegisterConfig().screen_iterations == 40
+    with pytest.raises(Exception, match="boundary_offset"):
+        SDRConfig(boundary_offset=-1.0)

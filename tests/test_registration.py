@@ -392,3 +392,117 @@ def test_cso_then_sdr_registers_from_random_start(scene: dict) -> None:
     # measured: CSO best ≈3 cm / ≈20° off, SDR from there ≈0.5 mm / ≈0.1°
     assert res.reason != "diverged"
     assert dt < 0.006 and dr < 1.0, (dt, dr)
+
+
+# --------------------------------------------------------------------------------------------
+# boundary offsets: robustness to segmentations that are too fat or too thin
+
+
+def _disc(radius: float, size: int = 41) -> np.ndarray:
+    yy, xx = np.mgrid[:size, :size]
+    c = (size - 1) / 2
+    return (yy - c) ** 2 + (xx - c) ** 2 <= radius**2
+
+
+def test_signed_distance_and_shifted_target_hand_computed() -> None:
+    from roboseg.registration.losses import signed_distance
+
+    m = _square_mask()
+    phi = signed_distance(m)
+    # inside: d(S) − ½ (rim 0.5, centre 1.5); outside: ½ − d(1 − S) (edge neighbours −0.5)
+    assert phi[2, 2] == pytest.approx(1.5) and phi[1, 1] == pytest.approx(0.5)
+    assert phi[0, 2] == pytest.approx(-0.5) and phi[0, 0] == pytest.approx(0.5 - math.sqrt(2))
+    target = RegistrationTarget.from_masks(m[None])
+    np.testing.assert_allclose(target.phi.numpy()[0], phi)
+    render = torch.rand(1, 5, 5, generator=torch.Generator().manual_seed(0))
+    for name in ("mse", "dice"):  # offset 0 is exactly the paper's cost
+        torch.testing.assert_close(
+            target.loss(render, name, torch.zeros(1)), target.loss(render, name)
+        )
+    # offset +1 erodes the 3×3 square to its centre pixel: d(S_1) = 1 there, 0 elsewhere
+    centre = np.zeros((5, 5), dtype=bool)
+    centre[2, 2] = True
+    eroded = RegistrationTarget.from_masks(centre[None])
+    torch.testing.assert_close(
+        target.loss(render, "mse", torch.ones(1)), eroded.loss(render, "mse")
+    )
+
+
+def test_best_offsets_undo_dilation_and_erosion() -> None:
+    render = torch.from_numpy(np.stack([_disc(8.0), _disc(8.0), _disc(8.0), _disc(8.0)]))
+    masks = np.stack([_disc(10.0), _disc(6.0), _disc(8.0), np.zeros((41, 41), bool)])
+    e = RegistrationTarget.from_masks(masks).best_offsets(render, max_offset=4.0)
+    assert e[0].item() == pytest.approx(2.0, abs=0.5)  # target 2 px too fat: erode it by 2
+    assert e[1].item() == pytest.approx(-2.0, abs=0.5)  # 2 px too thin: dilate it by 2
+    assert e[2].item() == 0.0  # exact: no shift
+    assert e[3].item() == 0.0  # empty segmentation: no shift
+    small = RegistrationTarget.from_masks(masks[:1]).best_offsets(render[:1], max_offset=1.0)
+    assert small.item() == pytest.approx(1.0)  # bounded by max_offset
+
+
+def _degrade(mask: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Dilate or erode by 2 px (at random) and stamp a 3 px blob on the boundary."""
+    import cv2
+
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
+    m = mask.astype(np.uint8)
+    out = cv2.dilate(m, k) if rng.random() < 0.5 else cv2.erode(m, k)
+    edge = np.argwhere(cv2.morphologyEx(m, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0)
+    y, x = edge[rng.integers(len(edge))]
+    cv2.circle(out, (int(x), int(y)), 3, int(rng.random() < 0.5), -1)
+    return out > 0
+
+
+def test_sdr_with_boundary_offsets_registers_degraded_masks(scene: dict) -> None:
+    from roboseg.registration.losses import iou as mask_iou
+    from roboseg.registration.sdr import SDRConfig, sdr
+
+    rng = np.random.default_rng(0)
+    degraded = [np.stack([_degrade(x.numpy(), rng) for x in m]) for m in scene["masks"]]
+    achieved = [
+        mask_iou(torch.from_numpy(d), m).mean().item()
+        for d, m in zip(degraded, scene["masks"], strict=True)
+    ]
+    assert min(achieved) > 0.6 and max(achieved) < 0.9, achieved
+    T0 = scene["T_true"].clone()
+    T0[:3, 3] += torch.tensor([0.01, -0.01, 0.02])
+    errors = {}
+    for offset in (0.0, 3.0):
+        res = sdr(
+            scene["vertices"],
+            scene["faces"],
+            scene["views"],
+            degraded,
+            T0,
+            SDRConfig(max_iterations=120, lr=4e-3, boundary_offset=offset),
+        )
+        assert res.reason != "diverged"
+        errors[offset] = _pose_errors(res.T_cam_base, scene["T_true"])
+    dt, dr = errors[3.0]
+    assert dt < 0.012 and dr < 1.5, errors
+    assert dt < errors[0.0][0], errors
+
+
+def test_multistart_screening_refines_only_the_best_start(scene: dict) -> None:
+    from roboseg.registration.sdr import SDRConfig, sdr_multistart
+
+    near = scene["T_true"].clone()
+    near[:3, 3] += torch.tensor([0.01, 0.0, -0.01])
+    far = scene["T_true"].clone()
+    far[:3, 3] += torch.tensor([0.15, 0.1, 0.3])
+    res = sdr_multistart(
+        scene["vertices"],
+        scene["faces"],
+        scene["views"],
+        scene["masks"],
+        [far, near],
+        SDRConfig(max_iterations=150, lr=4e-3),
+        screen_iterations=10,
+        keep=1,
+    )
+    dt, dr = _pose_errors(res.T_cam_base, scene["T_true"])
+    assert dt < 0.006 and dr < 1.0, (dt, dr)
+    with pytest.raises(ValueError, match="keep"):
+        sdr_multistart(
+            scene["vertices"], scene["faces"], scene["views"], scene["masks"], [near], keep=0
+        )

@@ -216,6 +216,9 @@ def config_from_cfg(cfg: DictConfig) -> RegisterConfig:
             method=str(cfg.method),  # type: ignore[arg-type]
             width=int(cfg.width),
             coarse_width=None if cfg.coarse_width is None else int(cfg.coarse_width),
+            screen_iterations=(
+                None if cfg.get("screen_iterations") is None else int(cfg.screen_iterations)
+            ),
             sdr_reduction=float(cfg.sdr_reduction),
             min_iou=float(cfg.min_iou),
             cso_configs=int(cfg.cso_configs),

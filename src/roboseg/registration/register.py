@@ -59,8 +59,11 @@ class RegisterConfig:
     the region of interest: the masks' bounding box grown by ``roi_margin`` per side. CSO scores
     the first ``cso_configs`` (most spread) configurations with the mesh decimated by
     ``cso_reduction``; multi-start SDR from its candidates renders at most ``coarse_width`` px
-    wide (None: ``width``), then the best start is refined at most ``width`` px wide with the
-    mesh decimated by ``sdr_reduction`` (decimation biases SDR by millimetres). A result whose
+    wide (None: ``width``; every start first runs ``screen_iterations`` iterations and only the
+    best continues, None: all run to the end), then the best start is refined at most ``width``
+    px wide with the mesh decimated by ``sdr_reduction`` (decimation biases SDR by millimetres).
+    ``sdr.boundary_offset`` lets each segmentation's boundary shift by up to that many pixels
+    (robustness to masks that are uniformly too fat or thin). A result whose
     mean IoU is below
     ``min_iou`` is reported as a poor fit.
     """
@@ -73,6 +76,7 @@ class RegisterConfig:
     method: Method = "sdr_prior"
     width: int = 320
     coarse_width: int | None = 160
+    screen_iterations: int | None = 40
     cso_configs: int = 4
     roi_margin: float = 0.3
     cso_reduction: float = 0.98
@@ -82,7 +86,9 @@ class RegisterConfig:
     cso: CSOConfig = field(
         default_factory=lambda: CSOConfig(n_particles=1000, iterations=20, width=48)
     )
-    sdr: SDRConfig = field(default_factory=lambda: SDRConfig(max_iterations=200))
+    sdr: SDRConfig = field(
+        default_factory=lambda: SDRConfig(max_iterations=200, boundary_offset=4.0)
+    )
     prior: PriorConfig = field(default_factory=PriorConfig)
 
     def __post_init__(self) -> None:
@@ -355,7 +361,15 @@ def register(
     sdr_views = views_for_width(roi_views, cfg.width)
     starts = [c.T_cam_base for c in found_cso.candidates]
     coarse_views = views_for_width(roi_views, cfg.coarse_width or cfg.width)
-    res_sdr = sdr_multistart(verts, fine.faces, coarse_views, roi_masks, starts, cfg.sdr)
+    res_sdr = sdr_multistart(
+        verts,
+        fine.faces,
+        coarse_views,
+        roi_masks,
+        starts,
+        cfg.sdr,
+        screen_iterations=cfg.screen_iterations,
+    )
     if coarse_views[0].width != sdr_views[0].width:
         refined = sdr(verts, fine.faces, sdr_views, roi_masks, res_sdr.T_cam_base, cfg.sdr)
         if refined.reason != "diverged":

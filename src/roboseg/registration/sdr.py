@@ -16,7 +16,7 @@ import logging
 import math
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -50,6 +50,15 @@ class SDRConfig:
     variant (b) prefers a render dilated by about σ·ln 2 ≈ 1.4 px beyond the segmentation (a pixel
     at distance d outside S raises the score while exp(−d/σ) > (1 − f)/2), which is negligible at
     full resolution but biases depth by centimetres on renders ~160 px wide.
+
+    ``boundary_offset`` (px at the render resolution, 0: off): each segmentation is compared
+    after shifting its boundary by the offset ``|e| ≤ boundary_offset`` that best matches the
+    hard render (:meth:`RegistrationTarget.best_offsets`), re-chosen every ``offset_every``
+    iterations from the current pose and held fixed in between (costs are only compared between
+    poses scored with the same offsets: the best pose is tracked anew after each update). A
+    segmentation that is uniformly too fat or too thin (a drape, a blurry model) otherwise pulls
+    the robot towards or away from the camera by centimetres; with the offset the depth comes
+    from the silhouette's shape and the stereo disparity instead of its width.
     """
 
     loss: LossName = "mse"
@@ -63,6 +72,14 @@ class SDRConfig:
     plateau_patience: int = 8
     min_lr: float = 1e-5
     collapse_ratio: float = 0.5
+    boundary_offset: float = 0.0
+    offset_every: int = 10
+
+    def __post_init__(self) -> None:
+        if self.boundary_offset < 0:
+            raise CameraError(f"boundary_offset must be >= 0 px, got {self.boundary_offset}")
+        if self.offset_every < 1:
+            raise CameraError(f"offset_every must be >= 1, got {self.offset_every}")
 
 
 @dataclass(frozen=True)
@@ -91,6 +108,10 @@ class StereoObjective:
         faces: ``[F, 3]`` mesh faces.
         views: the cameras (left first, identity ``T_view_left``).
         masks: per view, the target segmentations ``[C, H', W']`` (any size: resized to the view).
+        loss: the paper's cost (a) ``mse`` or (b) ``dice``.
+        boundary_offset: largest boundary shift of a segmentation (px), 0 for none (see
+            :class:`SDRConfig`); the offsets in use, ``offsets`` ``[C, n_views]`` (px), are set
+            by :meth:`update_offsets` (zero until then).
     """
 
     def __init__(
@@ -100,6 +121,7 @@ class StereoObjective:
         views: Sequence[View],
         masks: Sequence[np.ndarray | torch.Tensor],
         loss: LossName = "dice",
+        boundary_offset: float = 0.0,
     ) -> None:
         if len(views) != len(masks):
             raise ValueError(f"{len(views)} views but {len(masks)} target mask stacks")
@@ -109,6 +131,8 @@ class StereoObjective:
         self.vertices_base = vertices_base
         self.views = list(views)
         self.loss_name: LossName = loss
+        self.boundary_offset = float(boundary_offset)
+        self.offsets = torch.zeros(n_conf, len(self.views))
         self.targets: list[RegistrationTarget] = []
         self.renderers: list[SilhouetteRenderer] = []
         for view, m in zip(self.views, masks, strict=True):
@@ -125,14 +149,46 @@ class StereoObjective:
     def __call__(self, T_cam_base: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Cost (scalar, differentiable), IoU and rendered area (px), both ``[C, n_views]``."""
         losses, ious, areas = [], [], []
-        for view, target, renderer in zip(self.views, self.targets, self.renderers, strict=True):
+        use_offsets = self.boundary_offset > 0
+        for i, (view, target, renderer) in enumerate(
+            zip(self.views, self.targets, self.renderers, strict=True)
+        ):
             verts = vertices_in_view(T_cam_base, view, self.vertices_base)
             soft = renderer.soft(verts, view.K.to(verts))
             hard = soft.detach() > 0.5
-            losses.append(target.loss(soft, self.loss_name).mean())
+            e = self.offsets[:, i] if use_offsets else None
+            losses.append(target.loss(soft, self.loss_name, e).mean())
             ious.append(iou(hard, target.masks))
             areas.append(hard.sum(dim=(-2, -1)))
         return torch.stack(losses).sum(), torch.stack(ious, 1), torch.stack(areas, 1)
+
+    def plain_cost(self, T_cam_base: np.ndarray | torch.Tensor) -> float:
+        """The cost at ``T_cam_base`` without boundary offsets (comparable between poses)."""
+        T = torch.as_tensor(T_cam_base, dtype=self.vertices_base.dtype)
+        saved, self.boundary_offset = self.boundary_offset, 0.0
+        try:
+            with torch.no_grad():
+                return float(self(T)[0])
+        except CameraError:
+            return math.inf
+        finally:
+            self.boundary_offset = saved
+
+    def update_offsets(self, T_cam_base: torch.Tensor) -> torch.Tensor:
+        """Choose each segmentation's boundary offset for the hard render at ``T_cam_base``
+        (no-op when ``boundary_offset`` is 0); returns ``offsets`` ``[C, n_views]`` (px)."""
+        if self.boundary_offset <= 0:
+            return self.offsets
+        cols = []
+        with torch.no_grad():
+            for view, target, renderer in zip(
+                self.views, self.targets, self.renderers, strict=True
+            ):
+                verts = vertices_in_view(T_cam_base.detach(), view, self.vertices_base)
+                hard = renderer.hard(verts, view.K.to(verts))
+                cols.append(target.best_offsets(hard, self.boundary_offset))
+        self.offsets = torch.stack(cols, 1)
+        return self.offsets
 
 
 def _settled(pose_a: torch.Tensor, pose_b: torch.Tensor, cfg: SDRConfig) -> bool:
@@ -163,7 +219,9 @@ def sdr(
     Pass a prebuilt ``objective`` to reuse its distance transforms across restarts.
     """
     cfg = config or SDRConfig()
-    obj = objective or StereoObjective(vertices_base, faces, views, masks, cfg.loss)
+    obj = objective or StereoObjective(
+        vertices_base, faces, views, masks, cfg.loss, cfg.boundary_offset
+    )
     dtype = obj.vertices_base.dtype
     T0 = torch.as_tensor(T_cam_base_init, dtype=dtype)
     if T0.shape != (4, 4) or not bool(torch.isfinite(T0).all()):
@@ -182,6 +240,9 @@ def sdr(
     for it in range(1, cfg.max_iterations + 1):
         opt.zero_grad()
         try:
+            if obj.boundary_offset > 0 and (it - 1) % cfg.offset_every == 0:
+                obj.update_offsets(pose9d_to_matrix(pose.detach()))
+                best = (math.inf, best[1], best[2])  # costs change with the offsets
             loss, ious, areas = obj(pose9d_to_matrix(pose))
         except CameraError as e:  # every vertex behind a camera
             log.warning("SDR iteration %d: %s", it, e)
@@ -255,15 +316,37 @@ def sdr_multistart(
     masks: Sequence[np.ndarray | torch.Tensor],
     starts: Sequence[np.ndarray | torch.Tensor],
     config: SDRConfig | None = None,
+    screen_iterations: int | None = None,
+    keep: int = 1,
 ) -> RegistrationResult:
     """SDR from each of ``starts`` (e.g. the CSO candidates); the lowest-cost result that did not
-    diverge wins (a diverged one only when every start diverged). Distance maps are shared."""
+    diverge wins (a diverged one only when every start diverged; with boundary offsets, results
+    are ranked by their cost without offsets, the one criterion they share). Distance maps are
+    shared.
+
+    With ``screen_iterations``, every start first runs only that many iterations; the ``keep``
+    lowest-cost ones that did not diverge are then refined to convergence from where they got
+    (successive halving: most of the budget goes to the starts that look right).
+    """
     if not starts:
         raise ValueError("sdr_multistart needs at least one start pose")
+    if keep < 1:
+        raise ValueError(f"sdr_multistart keep must be >= 1, got {keep}")
     cfg = config or SDRConfig()
-    obj = StereoObjective(vertices_base, faces, views, masks, cfg.loss)
+    obj = StereoObjective(vertices_base, faces, views, masks, cfg.loss, cfg.boundary_offset)
+    if screen_iterations is not None and screen_iterations < cfg.max_iterations:
+        short = replace(cfg, max_iterations=max(1, screen_iterations))
+        screened = [sdr(vertices_base, faces, views, masks, T0, short, obj) for T0 in starts]
+        costs = [obj.plain_cost(r.T_cam_base) for r in screened]
+        order = sorted(
+            range(len(screened)), key=lambda i: (screened[i].reason == "diverged", costs[i])
+        )
+        log.info("SDR multi-start screening: costs %s", [round(c, 5) for c in costs])
+        starts = [screened[i].T_cam_base for i in order[:keep]]
     results = [sdr(vertices_base, faces, views, masks, T0, cfg, obj) for T0 in starts]
     ok = [r for r in results if r.reason != "diverged"] or results
-    best = min(ok, key=lambda r: r.loss)
+    # with boundary offsets each result's cost used its own offsets: compare without them
+    rank = (lambda r: obj.plain_cost(r.T_cam_base)) if cfg.boundary_offset > 0 else None
+    best = min(ok, key=rank or (lambda r: r.loss))
     log.info("SDR multi-start: %d starts, best loss %.5f (%s)", len(starts), best.loss, best.reason)
     return best
