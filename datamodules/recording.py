@@ -11,11 +11,18 @@ Every sample: the left image resized 16:9 → ``image_size`` (area interpolation
 (nearest), ``visible`` (no mask pixel on the border of the full-size mask), and for 4-channel
 models the in-context prior: the robot silhouette rendered at a perturbed ``T_cam_base``
 (from ``/tf_static``) with the resized intrinsics, or zeros with probability
-``1 - prior_probability``.
+``1 - prior_probability``. The prior is rendered at the model input size from the robot's meshes
+decimated by ``prior_mesh_reduction`` (disk-cached), for a whole loader batch in one rasteriser
+call, in the loader workers, i.e. before the (device-side) geometric augmentation.
+
+Memory: the shuffle buffer holds encoded frames without their right image, and a recording's
+decoded chunk cache is dropped as soon as the stream leaves its chunk, so a worker's memory does
+not grow with the number of recordings.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -28,7 +35,13 @@ import cv2
 import lightning.pytorch as pl
 import numpy as np
 import torch
-from torch.utils.data import DataLoader, Dataset, IterableDataset, get_worker_info
+from torch.utils.data import (
+    DataLoader,
+    Dataset,
+    IterableDataset,
+    default_collate,
+    get_worker_info,
+)
 
 from roboseg.augment.prior import InContextPrior
 from roboseg.camera import Intrinsics
@@ -45,6 +58,11 @@ SPLITS = ("train", "val", "test")
 VAL_PHASES = ("draped", "undraped", "all")
 MASKS = ("left/robot_mask",)
 Sample = dict[str, torch.Tensor]
+#: One view of a sample's prior, drawn but not rendered: joints ``[D]`` (model order),
+#: ``T_cam_base`` ``[4,4]``, ``K`` ``[3,3]`` (model input size), ``delta_r`` ``[3,3]``,
+#: ``delta_x`` ``[3]`` (metres).
+PriorView = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+_NO_PIXELS = np.zeros(0, np.uint8)
 
 
 # --- manifest ------------------------------------------------------------------------------
@@ -161,22 +179,32 @@ def robot_inside(mask: np.ndarray) -> bool:
 
 
 def collate(samples: Sequence[Sample | None]) -> dict[str, torch.Tensor]:
-    """Stack sample dicts, dropping ``None`` (frames that could not be read)."""
+    """Stack sample dicts, dropping ``None`` (frames that could not be read).
+
+    In a loader worker the stacked tensors are allocated in shared memory directly (as
+    ``default_collate`` does): no private copy per batch is made and freed, which would grow the
+    worker's heap.
+    """
     kept = [s for s in samples if s is not None]
     if not kept:
         return {}
-    return {k: torch.stack([s[k] for s in kept]) for k in kept[0]}
+    return default_collate(kept)
 
 
 # --- sample building -----------------------------------------------------------------------
 
 
 class FrameCodec:
-    """Turn a :class:`StereoFrame` of one reader into a training sample (shared by datasets)."""
+    """Turn a :class:`StereoFrame` of one reader into a training sample (shared by datasets).
+
+    ``prior_mesh_reduction``: fraction of mesh faces removed for the prior render (0: full
+    meshes; the prior is a perturbed pose anyway, so a decimated silhouette costs no accuracy
+    that matters and renders several times faster).
+    """
 
     def __init__(self, image_size: Sequence[int], with_prior: bool, prior_probability: float,
                  prior_translation: Sequence[float], prior_rotation_deg: float,
-                 robot_urdf: str | None, seed: int) -> None:
+                 robot_urdf: str | None, seed: int, prior_mesh_reduction: float = 0.0) -> None:
         self.image_size = (int(image_size[0]), int(image_size[1]))
         self.with_prior = bool(with_prior)
         self.prior_probability = float(prior_probability)
@@ -184,6 +212,7 @@ class FrameCodec:
                                     float(prior_rotation_deg))
         self.robot_urdf = robot_urdf
         self.seed = int(seed)
+        self.prior_mesh_reduction = float(prior_mesh_reduction)
         self._robot: RobotModel | None = None
         self._calib: dict[tuple[str, str], Any] = {}
 
@@ -194,8 +223,9 @@ class FrameCodec:
 
     @property
     def robot(self) -> RobotModel:
+        """The robot model of the prior renders (meshes decimated, loaded on first use)."""
         if self._robot is None:
-            self._robot = load_robot(self.robot_urdf)
+            self._robot = load_robot(self.robot_urdf, reduction=self.prior_mesh_reduction)
         return self._robot
 
     def _pose_and_K(self, reader: Any, robot: str, frame_id: str) -> tuple[np.ndarray, Any]:
@@ -212,21 +242,40 @@ class FrameCodec:
             self._calib[key] = (torch.as_tensor(T, dtype=torch.float32), K)
         return self._calib[key]
 
-    def render_prior(self, reader: Any, frame: StereoFrame, generator: torch.Generator
-                     ) -> torch.Tensor:
-        """Union over robots of silhouettes at perturbed poses, float {0,1} ``[1,H,W]``."""
-        h, w = self.image_size
-        out = torch.zeros(1, h, w)
+    def draw_prior(self, reader: Any, frame: StereoFrame, index: int, epoch: int
+                   ) -> list[PriorView]:
+        """The sample's prior views (one per robot; none for a zero prior), drawn from
+        ``sample_seed(seed, epoch, index)``: whether to render, then ``ΔR``, ``Δx`` per robot."""
+        if not self.with_prior:
+            return []
+        gen = torch.Generator().manual_seed(sample_seed(self.seed, epoch, index))
+        if float(torch.rand((), generator=gen)) >= self.prior_probability:
+            return []
+        views = []
         for robot, q in frame.joints.items():
             T, K = self._pose_and_K(reader, robot, frame.left_frame_id)
             q_model = self.robot.joints_from_names(frame.joint_names[robot], q)
-            verts = self.robot.posed_vertices(q_model[None])
-            sil = self.prior(verts, self.robot.faces, K, T[None], h, w, generator)
-            out = torch.maximum(out, sil[0])
-        return out
+            params = self.prior.sample(1, gen)
+            views.append((q_model, T, K, params["delta_r"][0], params["delta_x"][0]))
+        return views
 
-    def sample(self, reader: Any, frame: StereoFrame, index: int, epoch: int) -> Sample | None:
-        """Decoded, resized sample; None when the frame does not decode (logged)."""
+    def render_priors(self, views: Sequence[Sequence[PriorView]]) -> torch.Tensor:
+        """Priors ``[n,1,H,W]`` (float {0,1}) of n samples' views: per sample the union over its
+        robots of silhouettes at the perturbed poses; all views in one rasteriser call."""
+        h, w = self.image_size
+        flat = [(k, v) for k, vs in enumerate(views) for v in vs]
+        if not flat:
+            return torch.zeros(len(views), 1, h, w)
+        owner = torch.tensor([k for k, _ in flat], dtype=torch.long)
+        q, T, K, delta_r, delta_x = (torch.stack(parts) for parts in zip(*(v for _, v in flat),
+                                                                          strict=True))
+        verts = self.robot.posed_vertices(q.to(self.robot.dtype))
+        return self.prior.render_union(verts, self.robot.faces, K, T, h, w,
+                                       {"delta_r": delta_r, "delta_x": delta_x}, owner,
+                                       len(views))
+
+    def _decoded(self, reader: Any, frame: StereoFrame, index: int) -> Sample | None:
+        """Sample without its prior; None when the frame does not decode (logged)."""
         image = frame.left if frame.left.ndim == 3 else decode_image(frame.left.tobytes())
         mask = frame.masks[MASKS[0]]
         if mask.ndim == 1:
@@ -236,18 +285,28 @@ class FrameCodec:
             return None
         visible = robot_inside(mask)
         img, msk = resize_frame(image, mask, self.image_size)
-        prior = torch.zeros(1, *self.image_size)
-        if self.with_prior:
-            gen = torch.Generator().manual_seed(sample_seed(self.seed, epoch, index))
-            if float(torch.rand((), generator=gen)) < self.prior_probability:
-                prior = self.render_prior(reader, frame, gen)
         return {
             "image": torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1).float() / 255,
             "mask": torch.from_numpy(msk)[None].float(),
-            "prior": prior,
             "visible": torch.tensor(visible),
             "index": torch.tensor(index, dtype=torch.long),
         }
+
+    def samples(self, items: Sequence[tuple[Any, StereoFrame, int, int]]
+                ) -> list[Sample | None]:
+        """Samples of ``(reader, frame, index, epoch)`` items, priors rendered together."""
+        decoded = [self._decoded(reader, frame, index) for reader, frame, index, _ in items]
+        views = [self.draw_prior(reader, frame, index, epoch) if s is not None else []
+                 for s, (reader, frame, index, epoch) in zip(decoded, items, strict=True)]
+        priors = self.render_priors(views)
+        for k, s in enumerate(decoded):
+            if s is not None:
+                s["prior"] = priors[k]
+        return decoded
+
+    def sample(self, reader: Any, frame: StereoFrame, index: int, epoch: int) -> Sample | None:
+        """Decoded, resized sample with its prior; None when the frame does not decode."""
+        return self.samples([(reader, frame, index, epoch)])[0]
 
 
 # --- datasets ------------------------------------------------------------------------------
@@ -300,7 +359,9 @@ class StreamingFrames(IterableDataset):
                 f, chunk = self.shards[s]
                 reader = self.readers[f]
                 for frame in reader.frames_in_chunks([chunk], decode=False):
-                    yield epoch, f, frame
+                    # the buffer holds what a sample needs: no right image
+                    yield epoch, f, dataclasses.replace(frame, right=_NO_PIXELS)
+                reader.close()  # drop the decoded chunk: the stream is done with it
                 stats = reader.stats
                 if stats.skipped_corrupt:
                     self.skipped_corrupt += stats.skipped_corrupt
@@ -329,26 +390,36 @@ class StreamingFrames(IterableDataset):
         return batches * self.batch_size
 
     def __iter__(self) -> Iterator[Sample]:
+        """Samples in stream order, built ``batch_size`` at a time (one prior render call)."""
         worker, num_workers = self._worker()
         skip = self.worker_skip(worker, num_workers)
         log_file = open(self.seen_log, "a") if self.seen_log else None  # noqa: SIM115
+        group: list[tuple[Any, StereoFrame, int, int]] = []
         try:
             for epoch, f, frame in self._shuffled(worker, num_workers):
                 index = self.offsets[f] + frame.index
                 if skip > 0:
                     skip -= 1
                     continue
-                sample = self.codec.sample(self.readers[f], frame, index, epoch)
-                if sample is None:
-                    self.skipped_corrupt += 1
-                    continue
-                if log_file is not None:
-                    log_file.write(f"{self.rank} {worker} {epoch} {index}\n")
-                    log_file.flush()
-                yield sample
+                group.append((self.readers[f], frame, index, epoch))
+                if len(group) >= self.batch_size:
+                    yield from self._emit(group, worker, log_file)
+                    group = []
+            yield from self._emit(group, worker, log_file)
         finally:
             if log_file is not None:
                 log_file.close()
+
+    def _emit(self, group: Sequence[tuple[Any, StereoFrame, int, int]], worker: int,
+              log_file: Any) -> Iterator[Sample]:
+        for (_, _, index, epoch), sample in zip(group, self.codec.samples(group), strict=True):
+            if sample is None:
+                self.skipped_corrupt += 1
+                continue
+            if log_file is not None:
+                log_file.write(f"{self.rank} {worker} {epoch} {index}\n")
+                log_file.flush()
+            yield sample
 
 
 class IndexedFrames(Dataset):
@@ -395,7 +466,8 @@ class RecordingDataModule(pl.LightningDataModule):
 
     ``image_size``: model input ``[H, W]``; ``with_prior``: render the prior channel (4-channel
     models); ``prior_translation``: ``[low, high]`` metres per axis; ``prior_rotation_deg``: the
-    rotation's angle; ``subset``: expected manifest subset (``all`` accepts any);
+    rotation's angle; ``prior_mesh_reduction``: fraction of mesh faces removed for the prior
+    render; ``subset``: expected manifest subset (``all`` accepts any);
     ``val_phase``: ``draped`` | ``undraped`` | ``all`` frames of val and test.
     """
 
@@ -411,6 +483,7 @@ class RecordingDataModule(pl.LightningDataModule):
         prior_probability: float = 0.0,
         prior_translation: Sequence[float] = (0.0, 0.05),
         prior_rotation_deg: float = 5.0,
+        prior_mesh_reduction: float = 0.95,
         with_prior: bool | int = False,
         val_phase: str = "draped",
         seed: int = 0,
@@ -423,6 +496,9 @@ class RecordingDataModule(pl.LightningDataModule):
             raise DatasetError(f"data.val_phase must be one of {VAL_PHASES}, got {val_phase!r}")
         if not 0.0 <= float(prior_probability) <= 1.0:
             raise DatasetError(f"data.prior_probability must be in [0, 1], got {prior_probability}")
+        if not 0.0 <= float(prior_mesh_reduction) < 1.0:
+            raise DatasetError("data.prior_mesh_reduction must be in [0, 1), got "
+                               f"{prior_mesh_reduction}")
         self.root = Path(str(root))
         self.image_size = [int(v) for v in image_size]
         self.batch_size, self.num_workers = int(batch_size), int(num_workers)
@@ -433,6 +509,7 @@ class RecordingDataModule(pl.LightningDataModule):
                                                  and int(with_prior) == 4)
         self.prior_args = (float(prior_probability), tuple(float(v) for v in prior_translation),
                            float(prior_rotation_deg))
+        self.prior_mesh_reduction = float(prior_mesh_reduction)
         self.val_phase, self.seen_log = val_phase, seen_log
         self.manifest: Manifest = read_manifest(self.root)  # fail early, naming the path
         self._check_subset()
@@ -441,7 +518,7 @@ class RecordingDataModule(pl.LightningDataModule):
     def _codec(self) -> FrameCodec:
         p, t, r = self.prior_args
         return FrameCodec(self.image_size, self.with_prior, p, t, r, self.manifest.robot_urdf,
-                          self.seed)
+                          self.seed, self.prior_mesh_reduction)
 
     def _entries(self, split: str) -> list[RecordingEntry]:
         entries = self.manifest.split(split)

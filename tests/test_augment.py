@@ -356,3 +356,28 @@ def test_in_context_prior_with_the_project_rasteriser():
     cols_a = torch.nonzero(a[0, 0, 23]).flatten()
     cols_b = torch.nonzero(b[0, 0, 23]).flatten()
     assert int(cols_b.min() - cols_a.min()) == 5
+
+
+def test_in_context_prior_renders_many_views_at_once_as_unions_per_sample():
+    raster = pytest.importorskip("roboseg.render.raster", reason="rasteriser not available")
+    square = torch.tensor([[-0.1, -0.1, 0.0], [0.1, -0.1, 0.0], [0.1, 0.1, 0.0],
+                           [-0.1, 0.1, 0.0]])
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    K = torch.tensor([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]]).expand(3, 3, 3)
+    T = torch.eye(4).repeat(3, 1, 1)
+    T[:, 2, 3] = 1.0
+    params = {"delta_r": torch.eye(3).repeat(3, 1, 1),
+              "delta_x": torch.tensor([[0.0, 0.0, 0.0], [0.15, 0.0, 0.0], [0.0, 0.1, 0.0]])}
+    prior = InContextPrior(renderer=raster.render_hard)
+    verts = square.expand(3, 4, 3)
+    # views 0 and 1 (two robots) belong to sample 0, view 2 to sample 2; sample 1 has none
+    out = prior.render_union(verts, faces, K, T, H, W, params, torch.tensor([0, 0, 2]), 3)
+    each = prior.apply(verts, faces, K, T, H, W, params)
+    assert out.shape == (3, 1, H, W) and out.dtype == torch.float32
+    assert torch.equal(out[0], torch.maximum(each[0], each[1])) and not out[1].any()
+    assert torch.equal(out[2], each[2])
+    assert int(out[0, 0, 23].sum()) == 35  # two 20-px squares 15 px apart: 35 columns
+    empty = prior.render_union(verts[:0], faces, K[:0], T[:0], H, W,
+                               {k: v[:0] for k, v in params.items()},
+                               torch.zeros(0, dtype=torch.long), 2)
+    assert empty.shape == (2, 1, H, W) and not empty.any()

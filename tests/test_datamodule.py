@@ -304,3 +304,49 @@ def test_corrupt_frame_is_skipped_and_counted(dataset: Path, tmp_path: Path) -> 
     assert len(got) == train.n_frames() - 1 and 0 not in got
     assert train.skipped_corrupt == 1
     assert Counter(got).most_common(1)[0][1] == 1
+
+
+# --- prior rendering and loader memory ----------------------------------------------------------
+
+
+def test_priors_rendered_per_batch_equal_priors_rendered_one_by_one(dataset: Path) -> None:
+    dm = RecordingDataModule(dataset, image_size=[27, 48], num_workers=0, with_prior=4,
+                             prior_probability=0.7, seed=3)
+    dm.setup("fit")
+    train: StreamingFrames = dm.datasets["train"]
+    codec = train.codec
+    assert codec.robot.reduction == 0.95  # the prior renders decimated meshes by default
+    reader = train.readers[0]
+    items = [(reader, fr, train.offsets[0] + fr.index, 2) for fr in reader.frames(decode=False)]
+    together = codec.samples(items)
+    alone = [codec.sample(*item) for item in items]
+    drawn = [bool(s["prior"].any()) for s in together]
+    assert 0 < sum(drawn) < len(items)  # some zero priors, some rendered
+    for a, b in zip(together, alone, strict=True):
+        assert torch.equal(a["prior"], b["prior"]) and torch.equal(a["image"], b["image"])
+
+
+def test_stream_is_the_same_whatever_the_render_group(dataset: Path) -> None:
+    def stream(group: int) -> list[dict[str, torch.Tensor]]:
+        dm = RecordingDataModule(dataset, image_size=[16, 16], num_workers=0, shuffle_buffer=4,
+                                 with_prior=4, prior_probability=1.0, seed=2)
+        dm.setup("fit")
+        ds = dm.datasets["train"]
+        ds.batch_size = group  # samples are built (and priors rendered) this many at a time
+        it = iter(ds)
+        return [next(it) for _ in range(11)]
+
+    one, five = stream(1), stream(5)
+    assert [int(s["index"]) for s in one] == [int(s["index"]) for s in five]
+    assert all(torch.equal(a["prior"], b["prior"]) for a, b in zip(one, five, strict=True))
+
+
+def test_stream_releases_chunks_and_buffers_no_right_images(dataset: Path) -> None:
+    dm = RecordingDataModule(dataset, image_size=[16, 16], num_workers=0, shuffle_buffer=5)
+    dm.setup("fit")
+    train: StreamingFrames = dm.datasets["train"]
+    train.max_epochs = 1
+    buffered = list(train._source(0, 1))
+    assert len(buffered) == train.n_frames()
+    assert all(fr.right.size == 0 and fr.left.size > 0 for _, _, fr in buffered)
+    assert all(len(r._cache) == 0 for r in train.readers)  # no decoded chunk kept per file

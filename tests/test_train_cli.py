@@ -84,14 +84,22 @@ def test_user_errors_are_one_line_exit_1(
 def test_ddp_sim_sees_every_training_frame_once_per_epoch(
     smoke: tuple[Path, Path, str], tmp_path: Path
 ) -> None:
-    """Two CPU processes (gloo): the ranks' epoch-0 samples partition the training frames."""
+    """Two CPU processes (gloo): the ranks' epoch-0 samples partition the training frames.
+
+    5 steps of batch 4 per rank consume 20 samples per rank, as many as there are training
+    frames, so epoch 0 is complete on each rank whatever the shard split. One OpenMP thread per
+    rank: two ranks with two threads each on two cores oversubscribe them (several times slower).
+    """
     data, _, _ = smoke
     seen = tmp_path / "seen.txt"
-    proc = _run(["experiment=smoke", "trainer=ddp_sim", f"data.root={data}",
-                 f"hydra.run.dir={tmp_path / 'run'}", f"data.seen_log={seen}",
-                 "data.shuffle_buffer=1",  # epochs do not interleave: epoch 0 is complete
-                 "trainer.max_steps=8", "trainer.val_check_interval=8",
-                 "trainer.limit_val_batches=1"], tmp_path)
+    args = ["experiment=smoke", "trainer=ddp_sim", f"data.root={data}",
+            f"hydra.run.dir={tmp_path / 'run'}", f"data.seen_log={seen}",
+            "data.shuffle_buffer=1",  # epochs do not interleave: epoch 0 comes first
+            "data.batch_size=4", "trainer.max_steps=5", "trainer.val_check_interval=5",
+            "trainer.limit_val_batches=1"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONHASHSEED": "0"}
+    proc = subprocess.run(TRAIN + args, cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert len(re.findall(r"^val/iou=", proc.stdout, flags=re.M)) == 1  # rank zero only
     rows = [tuple(map(int, line.split())) for line in seen.read_text().splitlines()]

@@ -10,6 +10,8 @@ The perturbation modifies the pose of the robot in the camera frame, ``T_cam_bas
 
 The render must happen before the geometric augmentation, with intrinsics already scaled to the
 training size. The rasteriser is ``roboseg.render.raster.render_hard`` unless one is injected.
+Several views (robots of one frame, frames of one batch) render in one call with
+:meth:`InContextPrior.render_union`, which is much cheaper per view than one call each.
 """
 
 from __future__ import annotations
@@ -116,6 +118,31 @@ class InContextPrior(nn.Module):
         sil = render(verts_cam, faces, K, height, width)
         sil = sil.to(torch.float32)
         return sil.unsqueeze(1) if sil.ndim == 3 else sil
+
+    def render_union(
+        self,
+        verts_base: torch.Tensor,
+        faces: torch.Tensor,
+        K: torch.Tensor,
+        T_cam_base: torch.Tensor,
+        height: int,
+        width: int,
+        params: dict[str, torch.Tensor],
+        owner: torch.Tensor,
+        n_out: int,
+    ) -> torch.Tensor:
+        """Union per output of views rendered in one call: ``[n_out,1,H,W]`` float {0,1}.
+
+        ``verts_base`` ``[N,V,3]``, ``K`` ``[N,3,3]``, ``T_cam_base`` ``[N,4,4]`` and ``params``
+        describe N views as in :meth:`apply`; view ``n`` belongs to output ``owner[n]`` (long
+        ``[N]`` in ``[0, n_out)``). Outputs without a view are zero.
+        """
+        out = torch.zeros(n_out, 1, height, width)
+        if verts_base.shape[0] == 0:
+            return out
+        sil = self.apply(verts_base, faces, K, T_cam_base, height, width, params)
+        index = owner.to(torch.long).view(-1, 1, 1, 1).expand_as(sil)
+        return out.to(sil).scatter_reduce_(0, index, sil, reduce="amax")
 
     def forward(
         self,
