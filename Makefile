@@ -2,6 +2,7 @@
 #   make test       run the test suite
 #   make train      the main job on its embedded default: simulate → annotate → train → IoU → export
 #   make bench      every benchmark in bench/ (prints measured ratios side by side)
+#   make reproduce  the paper's pipeline end to end on a simulated study → docs/results.md
 #   make lint       ruff
 
 SHELL := /bin/bash
@@ -11,8 +12,10 @@ PY := $(VENV)/bin/python
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.roboseg-installed
 OUT ?= outputs/default
+REPRODUCE_OUT ?= outputs/reproduce
+RESULTS ?= docs/results.md
 
-.PHONY: test train bench lint env clean
+.PHONY: test train bench lint env clean reproduce
 
 env: $(STAMP)
 
@@ -38,6 +41,10 @@ bench: $(STAMP)
 
 train: $(STAMP)
 	$(PY) -m roboseg.pipeline out=$(OUT)
+
+# not part of `make test`; ARGS passes Hydra overrides, e.g. ARGS="recipe=paper frames=600"
+reproduce: $(STAMP)
+	$(PY) -m roboseg.reproduce out=$(REPRODUCE_OUT) results=$(RESULTS) $(ARGS)
 
 clean:
 	rm -rf outputs multirun .pytest_cache .ruff_cache

@@ -25,7 +25,7 @@ from roboseg.config import CONF_DIR
 log = logging.getLogger("roboseg.pipeline")
 
 
-def _bin(name: str) -> str:
+def script(name: str) -> str:
     """The console script ``name`` beside this interpreter (the project's venv)."""
     candidate = Path(sys.executable).with_name(name)
     return str(candidate) if candidate.exists() else name
@@ -68,30 +68,30 @@ def run_pipeline(cfg: DictConfig) -> Path:
             robots = 2 if split == "test" else 1
             stages.run(
                 f"simulate_{name}",
-                [_bin("roboseg-simulate"), f"out={raw}", f"name={name}", f"frames={sim.frames}",
+                [script("roboseg-simulate"), f"out={raw}", f"name={name}", f"frames={sim.frames}",
                  f"seed={int(sim.seed) + 100 * i + hash_split(split)}", f"robots={robots}",
                  f"camera.width={sim.width}", f"camera.height={sim.height}",
                  *sim.get("overrides", [])],
             )
     stages.run(
         "annotate",
-        [_bin("roboseg-annotate"), f"in={raw}", f"out={annotated}", *cfg.annotate.overrides],
+        [script("roboseg-annotate"), f"in={raw}", f"out={annotated}", *cfg.annotate.overrides],
     )
     stages.run(
         "train",
-        [_bin("roboseg-train"), f"experiment={cfg.train.experiment}", f"data.root={annotated}",
+        [script("roboseg-train"), f"experiment={cfg.train.experiment}", f"data.root={annotated}",
          f"hydra.run.dir={train_dir}", f"seed={cfg.seed}", *cfg.train.overrides],
     )
     ckpt = out / "model.ckpt"
-    best = _best_checkpoint(train_dir / "checkpoints")
+    best = best_checkpoint(train_dir / "checkpoints")
     if not ckpt.exists() or best.stat().st_mtime > ckpt.stat().st_mtime:
         shutil.copy2(best, ckpt)
     onnx = out / "model.onnx"
-    stages.run("export", [_bin("roboseg-export"), f"ckpt={ckpt}", f"out={onnx}"])
+    stages.run("export", [script("roboseg-export"), f"ckpt={ckpt}", f"out={onnx}"])
     stages.run(
         "evaluate",
-        [_bin("roboseg-eval"), f"models=[{onnx}]", f"data.root={annotated}", f"out={out / 'eval'}",
-         *cfg.evaluate.overrides],
+        [script("roboseg-eval"), f"models=[{onnx}]", f"data.root={annotated}",
+         f"out={out / 'eval'}", *cfg.evaluate.overrides],
     )
     print(f"model checkpoint: {ckpt}\nONNX model:       {onnx}\nIoU table:        "
           f"{out / 'eval' / 'iou_table.md'}", flush=True)
@@ -103,7 +103,7 @@ def hash_split(split: str) -> int:
     return {"train": 0, "val": 1000, "test": 2000}.get(split, 3000)
 
 
-def _best_checkpoint(folder: Path) -> Path:
+def best_checkpoint(folder: Path) -> Path:
     """``best.ckpt`` (best validation IoU, written by ``roboseg-train``), else ``last.ckpt``."""
     for name in ("best.ckpt", "last.ckpt"):
         if (folder / name).exists():

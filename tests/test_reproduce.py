@@ -1,0 +1,151 @@
+"""``python -m roboseg.reproduce``: the whole driver on a tiny study, its resume, its stages."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from roboseg.reproduce import ReproduceStages
+from roboseg.reproduce_report import frame_errors_mm, md_table
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: every training run: 64² inputs, batch 2, one validation batch per step
+SMALL_TRAIN = [
+    "data.image_size=[64,64]", "data.batch_size=2", "data.num_workers=0", "data.shuffle_buffer=8",
+    "trainer.val_check_interval=1", "trainer.limit_val_batches=1",
+    "trainer.num_sanity_val_steps=0", "trainer.enable_progress_bar=false",
+]
+REGISTER = [
+    "cso.n_particles=32", "cso.iterations=2", "cso.width=24", "sdr.max_iterations=3",
+    "prior.iterations=2", "prior.refresh_every=1", "width=64", "coarse_width=32",
+]
+MODELS = (
+    "recipes.cpu=["
+    "{name: m3, experiment: default, subset: full, overrides: ['trainer.max_steps=${steps}']},"
+    "{name: m4, experiment: default, subset: full, overrides: ['model.in_channels=4',"
+    " 'data.prior_probability=0.5', 'trainer.max_steps=${steps}']}]"
+)
+PAGE_SECTIONS = (
+    "## Study", "## Self-annotation quality", "## Segmentation (Table S4 columns)",
+    "## Localisation of the draped test recording", "## Breathing motion (tracking demo)",
+    "## Benchmarks", "## Run",
+)
+
+
+def _quoted(items: list[str]) -> str:
+    return "[" + ",".join(f'"{x}"' for x in items) + "]"
+
+
+def tiny_overrides(tmp: Path) -> list[str]:
+    """A complete study of 12-frame 96×64 recordings, 2 training steps, a tiny swarm."""
+    return [
+        f"out={tmp / 'out'}", f"results={tmp / 'docs' / 'results.md'}",
+        "frames=12", "width=96", "height=64", "steps=1", "lab.steps=1",
+        "lab.recordings={train:1,val:1}", "operating_room.recordings={train:1,val:1,test:1}",
+        "register.configs=3", f"register.overrides={_quoted(REGISTER)}",
+        f"train_overrides={_quoted(SMALL_TRAIN)}", f"lab.overrides={_quoted(SMALL_TRAIN)}",
+        'annotate.overrides=["min_joint_speed=0.0"]', "track.frames=6", MODELS,
+        "localise.cpu={sdr: m3, sdr_prior: m4}",
+        "benches=[{name: echo, cmd: [python, -c, 'print(\"figure 42.0 ms\")']}]",
+    ]
+
+
+def _reproduce(args: list[str]) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "roboseg.reproduce", *args], cwd=ROOT, capture_output=True,
+        text=True, timeout=900,
+    )
+
+
+@pytest.mark.slow
+def test_reproduce_tiny_study_then_resume(tmp_path: Path) -> None:
+    proc = _reproduce(tiny_overrides(tmp_path))
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    out = tmp_path / "out"
+    n_stages = int(proc.stdout.split(" stages into ")[0].split()[-1])
+    markers = sorted(p.name for p in out.glob(".*.done"))
+    assert len(markers) == n_stages
+    for stage in ("simulate_lab_train_00", "train_bootstrap", "export_bootstrap",
+                  "register_undraped_or_test_00_robot_1", "annotate_full_or_val_00",
+                  "annotation_quality", "train_m4", "export_m4", "evaluate",
+                  "register_draped_sdr_prior_robot_0", "track", "bench_echo"):
+        assert f".{stage}.done" in markers
+    assert f"[{n_stages}/{n_stages}" in proc.stdout and "total time:" in proc.stdout
+
+    # the merged, self-annotated dataset and the annotation quality against the simulator
+    manifest = json.loads((out / "annotated" / "full" / "manifest.json").read_text())
+    assert [r["split"] for r in manifest["recordings"]] == ["train", "val", "test"]
+    assert all(r["calibration"] == "file" for r in manifest["recordings"])
+    quality = json.loads((out / "metrics" / "annotation.json").read_text())
+    assert len(quality["rows"]) == 3 and len(quality["rows"][2]["registration"]) == 2
+    for row in quality["rows"]:
+        assert 0.0 <= row["annotation"]["iou_mean"] <= 1.0
+
+    page = (tmp_path / "docs" / "results.md").read_text()
+    for section in PAGE_SECTIONS:
+        assert section in page
+    assert "comes from simulated recordings" in page and "SAM 2" in page
+    assert "figure 42.0 ms" in page and "logical cores" in page
+    figures = tmp_path / "docs" / "results"
+    for name in ("localisation.png", "breathing.png", "qualitative_m3.png"):
+        assert (figures / name).is_file() and f"results/{name}" in page
+
+    again = _reproduce(tiny_overrides(tmp_path))
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert again.stdout.count("done already, skipped") == n_stages
+    assert "] $ " not in again.stdout
+    assert f"(0 of {n_stages} stages ran)" in again.stdout
+
+
+def test_stages_tolerant_failure_is_recorded_and_skipped(tmp_path: Path) -> None:
+    stages = ReproduceStages(tmp_path, total=3, runner="fork")
+    assert stages.run("ok", [sys.executable, "-c", "print('hello')"])
+    assert (tmp_path / "logs" / "ok.stdout").read_text() == "hello\n"
+    assert stages.run("bad", [sys.executable, "-c", "raise SystemExit(3)"], tolerant=True)
+    assert stages.status("bad")[1] == 3
+    assert not stages.run("bad", [sys.executable, "-c", "raise SystemExit(3)"], tolerant=True)
+    with pytest.raises(SystemExit, match="exit status 3"):
+        stages.run("strict", [sys.executable, "-c", "raise SystemExit(3)"])
+    assert stages.status("strict") == (None, None)
+
+
+def test_stages_forked_function(tmp_path: Path) -> None:
+    stages = ReproduceStages(tmp_path, total=2, runner="fork")
+    target = tmp_path / "written.txt"
+
+    def work() -> None:
+        print("from the child")
+        target.write_text("done")
+
+    assert stages.run("work", ["work"], fn=work)
+    assert target.read_text() == "done"
+    assert "from the child" in (tmp_path / "logs" / "work.stdout").read_text()
+
+    def fail() -> None:
+        raise RuntimeError("boom")
+
+    with pytest.raises(SystemExit, match="exit status 1"):
+        stages.run("fail", ["fail"], fn=fail)
+    assert "RuntimeError: boom" in (tmp_path / "logs" / "fail.log").read_text()
+
+
+def test_frame_errors_are_the_offset_of_a_translated_estimate(default_robot) -> None:
+    q = np.zeros((2, default_robot.dof))
+    T_true = np.eye(4)
+    T_true[:3, 3] = [0.1, -0.2, 1.5]
+    T_est = T_true.copy()
+    T_est[:3, 3] += [0.003, 0.0, -0.004]  # 5 mm
+    err = frame_errors_mm(default_robot, q, T_est, T_true)
+    assert err.shape == (2, len(default_robot.frame_names))
+    np.testing.assert_allclose(err, 5.0, atol=1e-6)
+    assert np.all(frame_errors_mm(default_robot, q, T_true, T_true) < 1e-9)
+
+
+def test_md_table() -> None:
+    assert md_table(["a", "b"], [[1, "x"]]) == "| a | b |\n|---|---|\n| 1 | x |\n"
