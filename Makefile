@@ -40,7 +40,7 @@ bench: $(STAMP)
 	  echo "== $$b"; $(PY) -m bench.$$(basename $$b .py) || exit 1; done
 
 train: $(STAMP)
-	$(PY) -m roboseg.pipeline out=$(OUT)
+	$(PY) -m roboseg.pipeline out=$(OUT) $(ARGS)
 
 # not part of `make test`; ARGS passes Hydra overrides, e.g. ARGS="recipe=paper frames=600"
 reproduce: $(STAMP)
