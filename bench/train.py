@@ -42,10 +42,10 @@ import torch
 from omegaconf import OmegaConf
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from bench.common import format_table  # noqa: E402
 from datamodules.recording import MASKS, RecordingDataModule, read_manifest  # noqa: E402
+from roboseg.annotate import AnnotateOptions, annotate_folder  # noqa: E402
 from roboseg.augment.pipeline import prepare  # noqa: E402
 from roboseg.config import CONF_DIR  # noqa: E402
 from roboseg.recording import (  # noqa: E402
@@ -57,6 +57,8 @@ from roboseg.recording import (  # noqa: E402
     mask_topic,
     msgs,
 )
+from roboseg.robot import load_robot  # noqa: E402
+from roboseg.sim import SimConfig, simulate_recording  # noqa: E402
 from roboseg.training import SegmentationModule  # noqa: E402
 
 PAPER_AUGMENT = OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "augment" / "paper.yaml"))
@@ -70,10 +72,13 @@ log = logging.getLogger("bench.train")
 
 def make_data(root: Path, frames: int, width: int, height: int) -> Path:
     """Simulated, annotated dataset (2 training recordings, 1 validation) in ``root``."""
-    from test_datamodule import make_annotated_dataset
-
-    return make_annotated_dataset(root, {"train": 2, "val": 1}, frames=frames, width=width,
-                                  height=height, chunk_size=200_000)
+    raw = root / "raw"
+    raw.mkdir(parents=True, exist_ok=True)
+    for seed, name in enumerate(("train_00", "train_01", "val_00")):
+        cfg = SimConfig(frames=frames, seed=seed, width=width, height=height, workers=1)
+        simulate_recording(cfg, raw / f"{name}.mcap")
+    annotate_folder(raw, root, load_robot(), AnnotateOptions())
+    return root
 
 
 def replicate_dataset(src: Path, dst: Path, files: int, frames_per_file: int,

@@ -44,6 +44,18 @@ def test_forward_shape_and_decoder(name, in_channels):
     assert model.segmentation_head[0].out_channels == 1
 
 
+def test_decoder_channels_override_sets_every_block_width():
+    torch.manual_seed(0)
+    model = build_unet("unet_mit_b0", decoder_channels=[128, 64, 32, 16, 8]).eval()
+    blocks = [b.conv2[0].out_channels for b in model.decoder.blocks]
+    assert blocks == [128, 64, 32, 16, 8]
+    with torch.no_grad():
+        assert model(torch.rand(1, 3, 64, 64)).shape == (1, 1, 64, 64)
+    assert count_params(model) < count_params(build_unet("unet_mit_b0"))
+    with pytest.raises(ModelConfigError, match="five positive widths|5 positive widths"):
+        build_unet("unet_mit_b0", decoder_channels=[64, 32])
+
+
 def test_four_channel_model_uses_the_prior_channel():
     torch.manual_seed(0)
     model = build_unet("unet_mit_b0", in_channels=4).eval()

@@ -118,7 +118,8 @@ def test_checkpoint_reloads_safely_with_export_metadata(trained):
     assert (folder / "best.ckpt").is_file() and (folder / "last.ckpt").is_file()
     raw = torch.load(folder / "last.ckpt", map_location="cpu", weights_only=True)
     assert raw["hyper_parameters"]["model"] == {
-        "name": "unet_resnet18", "in_channels": 4, "weights_path": None}
+        "name": "unet_resnet18", "in_channels": 4, "weights_path": None,
+        "decoder_channels": None}
     assert raw["roboseg"]["input_height"] == SIZE and raw["roboseg"]["in_channels"] == 4
     again = SegmentationModule.load_from_checkpoint(folder / "last.ckpt", map_location="cpu")
     meta = again.export_metadata()

@@ -9,7 +9,7 @@ ever downloaded); pretrained weights come only from a local file the user names.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -69,9 +69,15 @@ def available_models() -> list[str]:
 
 
 def build_unet(
-    name: str, in_channels: int = 3, weights_path: str | Path | None = None
+    name: str,
+    in_channels: int = 3,
+    weights_path: str | Path | None = None,
+    decoder_channels: Sequence[int] | None = None,
 ) -> nn.Module:
     """Build the U-Net preset ``name`` with ``in_channels`` inputs and one logit output channel.
+
+    ``decoder_channels`` (five widths) replaces the paper's :data:`DECODER_CHANNELS`, e.g. a
+    half-width decoder for CPU-sized runs.
 
     ``weights_path`` optionally names a local file (``torch.save`` of a state dict, a Lightning
     checkpoint, or an encoder-only state dict) loaded with ``weights_only=True``; see
@@ -83,12 +89,17 @@ def build_unet(
         )
     if in_channels not in IN_CHANNELS:
         raise ModelConfigError(f"in_channels must be 3 or 4, got {in_channels}")
+    decoder = list(DECODER_CHANNELS if decoder_channels is None else decoder_channels)
+    if len(decoder) != len(DECODER_CHANNELS) or min(decoder) < 1:
+        raise ModelConfigError(
+            f"decoder_channels must be {len(DECODER_CHANNELS)} positive widths, got {decoder}"
+        )
     model = smp.Unet(
         encoder_name=PRESETS[name].encoder,
         encoder_weights=None,
         in_channels=in_channels,
         classes=1,
-        decoder_channels=list(DECODER_CHANNELS),
+        decoder_channels=decoder,
         activation=None,
     )
     if weights_path is not None:

@@ -132,7 +132,8 @@ class SegmentationModule(pl.LightningModule):
             raise ModelFileError(f"model config: _target_ {target!r} is not {MODEL_TARGET!r}")
         model.setdefault("in_channels", 3)
         model.setdefault("weights_path", None)
-        unknown = set(model) - {"name", "in_channels", "weights_path"}
+        model.setdefault("decoder_channels", None)
+        unknown = set(model) - {"name", "in_channels", "weights_path", "decoder_channels"}
         if unknown:
             raise ModelFileError(f"model config: unknown keys {sorted(unknown)}")
         if lr_schedule not in LR_SCHEDULES:
@@ -158,7 +159,12 @@ class SegmentationModule(pl.LightningModule):
                 "warmup_steps": int(warmup_steps),
             }
         )
-        self.net = build_unet(model["name"], model["in_channels"], model["weights_path"])
+        self.net = build_unet(
+            model["name"],
+            model["in_channels"],
+            model["weights_path"],
+            model["decoder_channels"],
+        )
         self.loss_fn = FocalDiceLoss(**self.hparams.loss)
         self.augment = build_augmentation(self.hparams.augment)
         self.train_iou = BinaryJaccardIndex(threshold=float(threshold))
