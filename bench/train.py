@@ -77,7 +77,8 @@ def make_data(root: Path, frames: int, width: int, height: int) -> Path:
     for seed, name in enumerate(("train_00", "train_01", "val_00")):
         cfg = SimConfig(frames=frames, seed=seed, width=width, height=height, workers=1)
         simulate_recording(cfg, raw / f"{name}.mcap")
-    annotate_folder(raw, root, load_robot(), AnnotateOptions())
+    # every frame is kept (short recordings may hold the robot still): throughput, not selection
+    annotate_folder(raw, root, load_robot(), AnnotateOptions(min_joint_speed=0.0))
     return root
 
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from roboseg.reproduce import ReproduceStages
-from roboseg.reproduce_report import frame_errors_mm, md_table
+from roboseg.reproduce_report import at_a_glance, frame_errors_mm, md_table
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -32,7 +32,8 @@ MODELS = (
     " 'data.prior_probability=0.5', 'trainer.max_steps=${steps}']}]"
 )
 PAGE_SECTIONS = (
-    "## Study", "## Self-annotation quality", "## Segmentation (Table S4 columns)",
+    "## At a glance", "## Study", "## Self-annotation quality",
+    "## Segmentation (Table S4 columns)",
     "## Localisation of the draped test recording", "## Breathing motion (tracking demo)",
     "## Benchmarks", "## Run",
 )
@@ -149,3 +150,24 @@ def test_frame_errors_are_the_offset_of_a_translated_estimate(default_robot) -> 
 
 def test_md_table() -> None:
     assert md_table(["a", "b"], [[1, "x"]]) == "| a | b |\n|---|---|\n| 1 | x |\n"
+
+
+def test_at_a_glance_counts_failures_convergence_and_annotation_quality() -> None:
+    stages = [("simulate", 60.0, 0), ("register_a", 90.0, 1), ("register_b", 30.0, 0),
+              ("bench", None, None)]
+    annotation = {"rows": [
+        {"annotation": {"iou_mean": 0.9}, "registration": [{"converged": True}]},
+        {"annotation": {"iou_mean": 0.5},
+         "registration": [{"converged": False}, {"converged": True}]},
+    ]}
+    localisation = {"rows": [{"converged": True, "tool_median_mm": 12.5},
+                             {"converged": False, "tool_median_mm": 3.0}]}
+    lines = at_a_glance(stages, "0.812", annotation, localisation)
+    assert lines[0] == ("- stages: 2 of 4 ok, 1 failed (register_a), 1 not run; "
+                        "3.0 min of stage time in all")
+    assert lines[1].endswith("validation IoU 0.812")
+    assert lines[2] == ("- undraped registrations converged: 2 of 3; self-annotated masks vs "
+                        "simulator: mean IoU 0.700 over 2 recordings")
+    assert lines[3] == ("- draped test registrations converged: 1 of 2; median tool-centre "
+                        "error 3.0–12.5 mm")
+    assert len(at_a_glance(stages[:1], "-", None, None)) == 2

@@ -278,6 +278,50 @@ def _status(stages: Any, name: str) -> str:
     return "ok" if code == 0 else f"exit status {code}"
 
 
+def at_a_glance(
+    stage_status: Sequence[tuple[str, float | None, int | None]],
+    bootstrap_val_iou: str,
+    annotation: Any,
+    localisation: Any,
+) -> list[str]:
+    """Bullet lines summing up a run: stage time and failures, the bootstrap segmenter, the
+    undraped registrations and self-annotation, the draped registrations.
+
+    ``stage_status`` holds ``(name, seconds, exit status)`` per stage (``None``: not run);
+    ``annotation`` / ``localisation`` are the metrics files' contents (or ``None``).
+    """
+    ran = [(n, t, c) for n, t, c in stage_status if t is not None]
+    failed = [n for n, _, c in ran if c]
+    missing = [n for n, t, _ in stage_status if t is None]
+    total_min = sum(float(t) for _, t, _ in ran) / 60
+    lines = [
+        f"- stages: {len(ran) - len(failed)} of {len(stage_status)} ok, {len(failed)} failed"
+        + (f" ({', '.join(failed)})" if failed else "")
+        + (f", {len(missing)} not run" if missing else "")
+        + f"; {total_min:.1f} min of stage time in all",
+        f"- bootstrap segmenter (undraped lab frames): validation IoU {bootstrap_val_iou}",
+    ]
+    if annotation is not None:
+        regs = [r for row in annotation["rows"] for r in row["registration"]]
+        ious = [row["annotation"]["iou_mean"] for row in annotation["rows"]
+                if row["annotation"].get("iou_mean") is not None]
+        ok = sum(bool(r.get("converged")) for r in regs)
+        lines.append(
+            f"- undraped registrations converged: {ok} of {len(regs)}; self-annotated masks "
+            f"vs simulator: mean IoU {np.mean(ious):.3f} over {len(ious)} recordings"
+            if ious else f"- undraped registrations converged: {ok} of {len(regs)}"
+        )
+    if localisation is not None:
+        rows = localisation["rows"]
+        ok = sum(bool(r.get("converged")) for r in rows)
+        tool = [r["tool_median_mm"] for r in rows if r.get("tool_median_mm") is not None]
+        lines.append(
+            f"- draped test registrations converged: {ok} of {len(rows)}"
+            + (f"; median tool-centre error {min(tool):.1f}–{max(tool):.1f} mm" if tool else "")
+        )
+    return lines
+
+
 def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
     """Write the results page ``layout.page`` and its figures into ``layout.figures``."""
     out: Path = layout.out
@@ -290,16 +334,24 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
     add(
         "**Every number on this page comes from simulated recordings** written by roboseg's own "
         "simulator (a rendered robot under a simulated drape, with simulated cameras, "
-        "occluders and lighting), not from an operating room. They show that the chain "
-        "record → self-annotate → train → export → evaluate → register → track runs end to "
-        "end and how its parts compare with each other; they are not the paper's clinical "
-        "results and should not be compared with them as such.\n"
+        "occluders and lighting), not from an operating room. They show what the chain "
+        "record → self-annotate → train → export → evaluate → register → track gives end to "
+        "end, where it fails, and how its parts compare with each other; they are not the "
+        "paper's clinical results and should not be compared with them as such.\n"
     )
     add(
         f"Produced by `make reproduce` (`python -m roboseg.reproduce`, recipe `{cfg.recipe}`, "
         f"{cfg.frames} frames per recording at {cfg.width}×{cfg.height}, seed {cfg.seed}); "
         f"page written {today()} on {machine_description()}.\n"
     )
+    add("## At a glance\n")
+    glance = at_a_glance(
+        [(step.name, *stages.status(step.name)) for step in plan],
+        _val_iou(logs, "bootstrap"),
+        read_json(out / "metrics" / "annotation.json"),
+        read_json(out / "metrics" / "localisation.json"),
+    )
+    add("\n".join(glance) + "\n")
 
     # study
     add("## Study\n")
