@@ -1,9 +1,10 @@
 """U-Net presets of the paper (segmentation_models_pytorch) behind a registry and one factory.
 
-Every preset is a U-Net with decoder channels [256, 128, 64, 32, 16] and one logit channel
-(binary robot / background). Inputs are ``[B, C, H, W]`` with ``C = 3`` (normalised RGB) or
-``C = 4`` (RGB + in-context prior). Encoders start random (``encoder_weights=None``: nothing is
-ever downloaded); pretrained weights come only from a local file the user names.
+Every preset is a U-Net with decoder channels [256, 128, 64, 32, 16] (the paper's; a run may
+choose other widths) and one logit channel (binary robot / background). Inputs are
+``[B, C, H, W]`` with ``C = 3`` (normalised RGB) or ``C = 4`` (RGB + in-context prior).
+Encoders start random (``encoder_weights=None``: nothing is ever downloaded); pretrained
+weights come only from a local file the user names.
 """
 
 from __future__ import annotations
