@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from roboseg.reproduce import ReproduceStages
-from roboseg.reproduce_report import at_a_glance, frame_errors_mm, md_table
+from roboseg.reproduce_report import at_a_glance, frame_errors_mm, md_table, portable
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -171,3 +171,9 @@ def test_at_a_glance_counts_failures_convergence_and_annotation_quality() -> Non
     assert lines[3] == ("- draped test registrations converged: 1 of 2; median tool-centre "
                         "error 3.0–12.5 mm")
     assert len(at_a_glance(stages[:1], "-", None, None)) == 2
+
+
+def test_portable_commands_name_python_and_relative_paths(tmp_path: Path) -> None:
+    cmd = f"/opt/venv/bin/python -m bench.x --model {tmp_path}/models/a.onnx --out /elsewhere/b"
+    assert portable(cmd, tmp_path, python="/opt/venv/bin/python") == (
+        "python -m bench.x --model models/a.onnx --out /elsewhere/b")

@@ -14,6 +14,7 @@ import logging
 import os
 import platform
 import shutil
+import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -251,6 +252,13 @@ def _stage_log_header(logs: Path, name: str) -> tuple[str, str]:
     command = lines[0][2:] if lines and lines[0].startswith("$ ") else "-"
     where = lines[1][2:] if len(lines) > 1 and lines[1].startswith("# ") else "-"
     return command, where
+
+
+def portable(text: str, root: Path, python: str = sys.executable) -> str:
+    """``text`` with this interpreter written ``python`` and paths under ``root`` made relative
+    to it, so that the page's commands run from any checkout's root."""
+    text = text.replace(python, "python")
+    return text.replace(f"{Path(root).resolve()}/", "")
 
 
 def _stdout(logs: Path, name: str, max_lines: int = 150) -> str:
@@ -500,6 +508,7 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
             continue
         command, where = _stage_log_header(logs, step.name)
         add(f"\n### {step.name.removeprefix('bench_')}\n")
+        command = portable(command, Path.cwd())
         add(f"- command: `{command}`\n- ran: {where}\n- status: {_status(stages, step.name)}\n")
         text = _stdout(logs, step.name)
         add("\n```text\n" + (text or "(no output)") + "\n```\n")
@@ -513,7 +522,7 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
         total += seconds or 0.0
         rows.append([step.name, fmt(seconds, 0), _status(stages, step.name)])
     add(f"Stage times (seconds, each from the run that did it); all stages together "
-        f"{total / 60:.1f} min. Logs: `{out / 'logs'}`.\n\n")
+        f"{total / 60:.1f} min. Logs: `{portable(str(out / 'logs'), Path.cwd())}`.\n\n")
     add(md_table(["stage", "seconds", "status"], rows))
     write_text_atomic(layout.page, "\n".join(parts))
     return layout.page
