@@ -177,3 +177,18 @@ def test_portable_commands_name_python_and_relative_paths(tmp_path: Path) -> Non
     cmd = f"/opt/venv/bin/python -m bench.x --model {tmp_path}/models/a.onnx --out /elsewhere/b"
     assert portable(cmd, tmp_path, python="/opt/venv/bin/python") == (
         "python -m bench.x --model models/a.onnx --out /elsewhere/b")
+
+
+def test_plan_study_gives_every_recording_its_own_seed() -> None:
+    from omegaconf import OmegaConf
+
+    from roboseg.reproduce import plan_study
+
+    cfg = OmegaConf.load(ROOT / "conf" / "reproduce.yaml")
+    cfg.lab.recordings = {"train": 16, "val": 2}
+    lab, study = plan_study(cfg)
+    assert [r.stem for r in lab][:2] == ["lab_train_00", "lab_train_01"]
+    assert len(lab) == 18 and len({r.seed for r in lab + study}) == 18 + len(study)
+    cfg.lab.recordings = {"train": 101, "val": 1}  # lab_train_100 lands on lab_val_00's seed
+    with pytest.raises(SystemExit, match="lab_train_100 and lab_val_00 would share seed 11000"):
+        plan_study(cfg)

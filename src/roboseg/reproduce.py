@@ -334,9 +334,9 @@ def robots_of(rec: Recording) -> list[str]:
 def plan_study(cfg: DictConfig) -> tuple[list[Recording], list[Recording]]:
     """The lab and operating-room recordings of ``cfg`` (names, splits, seeds, robots)."""
     seed = int(cfg.seed)
-    lab = [
+    lab = [  # stride 10: up to 100 lab recordings per split before seeds could repeat
         Recording(f"lab_{split}_{i:02d}", "lab", split,
-                  seed + LAB_SEED_OFFSET + 100 * i + hash_split(split), 1)
+                  seed + LAB_SEED_OFFSET + 10 * i + hash_split(split), 1)
         for split, count in cfg.lab.recordings.items() for i in range(int(count))
     ]
     study = [
@@ -351,6 +351,14 @@ def plan_study(cfg: DictConfig) -> tuple[list[Recording], list[Recording]]:
         missing = [s for s in needed if not any(r.split == s for r in group)]
         if missing:
             raise SystemExit(f"{name}.recordings: needs at least one {missing} recording")
+    seeds: dict[int, str] = {}
+    for rec in lab + study:
+        if rec.seed in seeds:
+            raise SystemExit(
+                f"recordings {seeds[rec.seed]} and {rec.stem} would share seed {rec.seed} "
+                "(the same scene in two places); use fewer recordings per split"
+            )
+        seeds[rec.seed] = rec.stem
     return lab, study
 
 
@@ -507,18 +515,21 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
     steps: list[Step] = []
     frames, width, height = int(cfg.frames), int(cfg.width), int(cfg.height)
 
-    def simulate(rec: Recording, extra: Sequence[str]) -> Step:
+    def simulate(rec: Recording, extra: Sequence[str], n_frames: int = frames) -> Step:
         path = layout.recording(rec)
         return Step(f"simulate_{rec.stem}", [
             script("roboseg-simulate"), f"out={path.parent}", f"name={rec.stem}",
-            f"frames={frames}", f"seed={rec.seed}", f"robots={rec.robots}",
+            f"frames={n_frames}", f"seed={rec.seed}", f"robots={rec.robots}",
             f"camera.width={width}", f"camera.height={height}",
             *cfg.operating_room.simulate_overrides, *extra,
         ])
 
     # 1. bootstrap: the calibrated lab rig
+    lab_frames = frames if cfg.lab.get("frames") is None else int(cfg.lab.frames)
     for rec in layout.lab:
-        steps.append(simulate(rec, [f"drape.undraped_fraction={float(cfg.lab.undraped_fraction)}"]))
+        steps.append(simulate(
+            rec, [f"drape.undraped_fraction={float(cfg.lab.undraped_fraction)}"], lab_frames
+        ))
     lab_root = layout.bootstrap / "annotated"
     steps.append(Step("annotate_lab", [
         script("roboseg-annotate"), f"in={layout.recording(layout.lab[0]).parent}",
