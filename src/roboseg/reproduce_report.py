@@ -444,8 +444,11 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
     add(
         f"SDR with the 3-channel model `{chosen.sdr}`, SDR with in-context prior with the "
         f"4-channel model `{chosen.sdr_prior}`, {cfg.register.configs} stereo configurations "
-        "from the draped phase, each robot on its own (the masks contain both robots). Errors "
-        "against the simulator's `/tf_static` at every link origin over every draped frame.\n"
+        "from the draped phase, each robot on its own: the masks contain both robots, so each "
+        "fit is refined on the pixels near its own estimate, and refitted without the other "
+        "robot's pixels when the other robot's joints explain it better "
+        "(`other_robots_margin`). Errors against the simulator's `/tf_static` at every link "
+        "origin over every draped frame.\n"
     )
     entries = []
     if ann is not None:

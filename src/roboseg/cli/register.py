@@ -221,6 +221,7 @@ def config_from_cfg(cfg: DictConfig) -> RegisterConfig:
             ),
             sdr_reduction=float(cfg.sdr_reduction),
             min_iou=float(cfg.min_iou),
+            other_robots_margin=float(cfg.get("other_robots_margin", 0.05)),
             cso_configs=int(cfg.cso_configs),
             cso=CSOConfig(**cso_kw),
             sdr=sdr_cfg,

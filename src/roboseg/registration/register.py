@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
+import cv2
 import numpy as np
 import torch
 
@@ -23,7 +24,12 @@ from roboseg.errors import CameraError, RecordingError, RobotModelError
 from roboseg.recording import RecordingReader, StereoFrame
 from roboseg.registration.cso import CSOConfig, cso
 from roboseg.registration.sdr import RegistrationResult, SDRConfig, sdr, sdr_multistart
-from roboseg.registration.sdr_prior import PriorConfig, PriorResult, sdr_with_prior
+from roboseg.registration.sdr_prior import (
+    PriorConfig,
+    PriorResult,
+    render_prior,
+    sdr_with_prior,
+)
 from roboseg.registration.views import View, crop_to_masks, stereo_views, views_for_width
 from roboseg.robot import RobotModel
 
@@ -63,9 +69,12 @@ class RegisterConfig:
     best continues, None: all run to the end), then the best start is refined at most ``width``
     px wide with the mesh decimated by ``sdr_reduction`` (decimation biases SDR by millimetres).
     ``sdr.boundary_offset`` lets each segmentation's boundary shift by up to that many pixels
-    (robustness to masks that are uniformly too fat or thin). A result whose
-    mean IoU is below
-    ``min_iou`` is reported as a poor fit.
+    (robustness to masks that are uniformly too fat or thin). When the recording holds several
+    robots (the masks show all of them), the SDR estimate is refined once more on the mask
+    pixels within ``other_robots_margin`` × image width of this robot's silhouette (SDR with
+    prior does the same around each prior), so the other robots neither pull the fit nor lower
+    its IoU; 0 turns this off. A result whose mean IoU is below ``min_iou`` is reported as a
+    poor fit.
     """
 
     configs: int = 9
@@ -83,6 +92,7 @@ class RegisterConfig:
     sdr_reduction: float = 0.0
     min_mask_fraction: float = 0.002
     min_iou: float = 0.5
+    other_robots_margin: float = 0.05
     cso: CSOConfig = field(
         default_factory=lambda: CSOConfig(n_particles=1000, iterations=20, width=48)
     )
@@ -98,6 +108,11 @@ class RegisterConfig:
             raise RecordingError(f"phase must be undraped, draped or all, got {self.phase!r}")
         if self.method not in ("sdr", "sdr_prior"):
             raise CameraError(f"method must be sdr or sdr_prior, got {self.method!r}")
+        if self.other_robots_margin < 0:
+            raise CameraError(
+                f"other_robots_margin must be >= 0 (fraction of the image width), got "
+                f"{self.other_robots_margin}"
+            )
 
 
 @dataclass(frozen=True)
@@ -166,6 +181,20 @@ def spread_configurations(q: np.ndarray, n: int, scale: np.ndarray | None = None
         order.append(nxt)
         dist = np.minimum(dist, np.linalg.norm(x - x[nxt], axis=1))
     return order
+
+
+def near_silhouettes(masks: np.ndarray, silhouettes: np.ndarray, margin_px: float) -> np.ndarray:
+    """``masks`` ``[C, H, W]`` bool without the pixels farther than ``margin_px`` (Euclidean,
+    between pixel centres) from every pixel of the matching ``silhouettes`` ``[C, H, W]`` bool:
+    the part of a segmentation that one robot's estimate can explain, other robots removed.
+    An empty silhouette keeps nothing of its mask."""
+    masks = np.asarray(masks, dtype=bool)
+    out = np.zeros_like(masks)
+    for i, (m, s) in enumerate(zip(masks, np.asarray(silhouettes, dtype=bool), strict=True)):
+        if s.any():
+            dist = cv2.distanceTransform((~s).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+            out[i] = m & (dist <= margin_px)
+    return out
 
 
 def phase_window(
@@ -253,6 +282,150 @@ def _segment_fn(segmentor: Any) -> Callable[[np.ndarray, np.ndarray | None], np.
         return segmentor.predict(images, prior) > segmentor.meta.threshold
 
     return segment
+
+
+#: IoU by which another robot's joints must beat the registered robot's at the estimate before
+#: the estimate is taken to sit on that robot's pixels
+CLAIM_MARGIN = 0.05
+
+
+class _Fitter:
+    """Swarm → multi-start SDR → refinement of one robot (joints ``q`` [C, D] of the used
+    configurations) on given masks per view ``[C, H, W]``. With ``margins`` (px per view; several
+    robots in the masks) the estimate is refined once more on the mask pixels within that
+    distance of its own silhouette, and those masks are returned instead of the given ones."""
+
+    def __init__(
+        self,
+        cfg: RegisterConfig,
+        views: list[View],
+        coarse: RobotModel,
+        fine: RobotModel,
+        q: torch.Tensor,
+        margins: list[float] | None,
+    ) -> None:
+        self.cfg, self.views, self.coarse, self.fine, self.q = cfg, views, coarse, fine, q
+        self.verts = fine.posed_vertices(q)
+        self.margins = margins
+
+    def silhouettes(
+        self, T_cam_base: np.ndarray, q: torch.Tensor | None = None
+    ) -> list[np.ndarray]:
+        """Hard silhouettes per view ``[C, H, W]`` bool at ``T_cam_base`` (joints ``q``, default
+        the registered robot's)."""
+        verts = self.verts if q is None else self.fine.posed_vertices(q)
+        return [render_prior(verts, self.fine.faces, v, T_cam_base) > 0.5 for v in self.views]
+
+    def __call__(
+        self, masks: list[np.ndarray], seconds: dict[str, float]
+    ) -> tuple[RegistrationResult, list[np.ndarray], Any]:
+        cfg, faces = self.cfg, self.fine.faces
+        t1 = time.perf_counter()
+        roi_views, roi_masks = crop_to_masks(self.views, masks, cfg.roi_margin)
+        log.info("region of interest: %s", [(v.name, v.width, v.height) for v in roi_views])
+        n_cso = max(1, min(cfg.cso_configs, len(self.q)))
+        found_cso = cso(
+            self.coarse.posed_vertices(self.q[:n_cso]),
+            self.coarse.faces,
+            roi_views,
+            [m[:n_cso] for m in roi_masks],
+            cfg.cso,
+        )
+        seconds["cso"] = seconds.get("cso", 0.0) + time.perf_counter() - t1
+        t1 = time.perf_counter()
+        sdr_views = views_for_width(roi_views, cfg.width)
+        starts = [c.T_cam_base for c in found_cso.candidates]
+        coarse_views = views_for_width(roi_views, cfg.coarse_width or cfg.width)
+        res = sdr_multistart(
+            self.verts,
+            faces,
+            coarse_views,
+            roi_masks,
+            starts,
+            cfg.sdr,
+            screen_iterations=cfg.screen_iterations,
+        )
+        if coarse_views[0].width != sdr_views[0].width:
+            refined = sdr(self.verts, faces, sdr_views, roi_masks, res.T_cam_base, cfg.sdr)
+            if refined.reason != "diverged":
+                res = refined
+        if self.margins is not None and res.reason != "diverged":
+            own = [
+                near_silhouettes(m, s, r)
+                for m, s, r in zip(
+                    masks, self.silhouettes(res.T_cam_base), self.margins, strict=True
+                )
+            ]
+            if all(m.any() for m in own):
+                own_views, own_masks = crop_to_masks(self.views, own, cfg.roi_margin)
+                refit = sdr(
+                    self.verts,
+                    faces,
+                    views_for_width(own_views, cfg.width),
+                    own_masks,
+                    res.T_cam_base,
+                    cfg.sdr,
+                )
+                if refit.reason != "diverged":
+                    res, masks = refit, own
+        seconds["sdr"] = seconds.get("sdr", 0.0) + time.perf_counter() - t1
+        return res, masks, found_cso
+
+
+def pooled_iou(silhouettes: list[np.ndarray], masks: list[np.ndarray]) -> float:
+    """Mean over views of the IoU pooled over configurations (``[C, H, W]`` bool per view)."""
+    values = []
+    for s, m in zip(silhouettes, masks, strict=True):
+        union = np.count_nonzero(s | m)
+        values.append(np.count_nonzero(s & m) / union if union else 1.0)
+    return float(np.mean(values))
+
+
+def _other_robots_joints(
+    path: Path, robot: str, robot_model: RobotModel, used: list[Configuration]
+) -> dict[str, torch.Tensor]:
+    """Joints ``[C, D]`` of every other robot of the recording at the used frames, for the robots
+    with the registered robot's joint names and a joint state at each of those frames."""
+    with RecordingReader(path, on_error="skip") as probe:
+        names = [r for r in probe.robots if r != robot]
+        joints = probe.joint_names()
+    out: dict[str, torch.Tensor] = {}
+    for name in names:
+        if sorted(joints.get(name, [])) != sorted(robot_model.joint_names):
+            continue
+        with RecordingReader(
+            path, robots=[name], joint_order={name: robot_model.joint_names}, on_error="skip"
+        ) as reader:
+            by_index = {f.index: f.joints[name] for f in reader.frames(decode=False)}
+        if all(c.index in by_index for c in used):
+            rows = np.stack([by_index[c.index] for c in used])
+            out[name] = torch.as_tensor(rows, dtype=robot_model.dtype)
+    return out
+
+
+def _claimed_by(
+    fit: _Fitter,
+    T_cam_base: np.ndarray,
+    masks: list[np.ndarray],
+    other_q: dict[str, torch.Tensor],
+) -> tuple[str, float, float, np.ndarray] | None:
+    """``(robot, own IoU, its IoU, its pose)`` when another robot's joints, fitted by a short SDR
+    from the estimate to ``masks`` (the pixels near the estimate), match them better (by
+    :data:`CLAIM_MARGIN`) than the registered robot's: the estimate then sits on that robot's
+    pixels. None otherwise."""
+    own = pooled_iou(fit.silhouettes(T_cam_base), masks)
+    roi_views, roi_masks = crop_to_masks(fit.views, masks, fit.cfg.roi_margin)
+    views = views_for_width(roi_views, fit.cfg.coarse_width or fit.cfg.width)
+    best: tuple[str, float, float, np.ndarray] | None = None
+    for name, q in other_q.items():
+        verts = fit.fine.posed_vertices(q)
+        res = sdr(verts, fit.fine.faces, views, roi_masks, T_cam_base, fit.cfg.sdr)
+        if res.reason == "diverged":
+            continue
+        theirs = pooled_iou(fit.silhouettes(res.T_cam_base, q), masks)
+        if theirs > own + CLAIM_MARGIN and (best is None or theirs > best[2]):
+            best = (name, own, theirs, res.T_cam_base)
+    return best
 
 
 def register(
@@ -344,47 +517,54 @@ def register(
     q = torch.as_tensor(np.stack([c.joints for c in used]), dtype=robot_model.dtype)
     coarse = robot_model.decimated(cfg.cso_reduction) if cfg.cso_reduction > 0 else robot_model
     fine = robot_model.decimated(cfg.sdr_reduction) if cfg.sdr_reduction > 0 else robot_model
-    t1 = time.perf_counter()
-    roi_views, roi_masks = crop_to_masks(views, mask_stacks, cfg.roi_margin)
-    log.info("region of interest: %s", [(v.name, v.width, v.height) for v in roi_views])
-    n_cso = max(1, min(cfg.cso_configs, len(used)))
-    found_cso = cso(
-        coarse.posed_vertices(q[:n_cso]),
-        coarse.faces,
-        roi_views,
-        [m[:n_cso] for m in roi_masks],
-        cfg.cso,
-    )
-    seconds["cso"] = time.perf_counter() - t1
-    t1 = time.perf_counter()
-    verts = fine.posed_vertices(q)
-    sdr_views = views_for_width(roi_views, cfg.width)
-    starts = [c.T_cam_base for c in found_cso.candidates]
-    coarse_views = views_for_width(roi_views, cfg.coarse_width or cfg.width)
-    res_sdr = sdr_multistart(
-        verts,
-        fine.faces,
-        coarse_views,
-        roi_masks,
-        starts,
-        cfg.sdr,
-        screen_iterations=cfg.screen_iterations,
-    )
-    if coarse_views[0].width != sdr_views[0].width:
-        refined = sdr(verts, fine.faces, sdr_views, roi_masks, res_sdr.T_cam_base, cfg.sdr)
-        if refined.reason != "diverged":
-            res_sdr = refined
-    seconds["sdr"] = time.perf_counter() - t1
+    others = len(robots_in_masks) > 1 and cfg.other_robots_margin > 0
+    margins = [cfg.other_robots_margin * v.width for v in views]
+    fit = _Fitter(cfg, views, coarse, fine, q, margins if others else None)
+    verts = fit.verts
+    full = mask_stacks
+    res_sdr, mask_stacks, found_cso = fit(full, seconds)
+    if others and res_sdr.reason != "diverged":
+        other_q = _other_robots_joints(path, robot, robot_model, used)
+        claimed = _claimed_by(fit, res_sdr.T_cam_base, mask_stacks, other_q)
+        if claimed is not None:
+            name, own_iou, other_iou, T_other = claimed
+            warnings.append(
+                f"the first fit sat on {name}'s pixels (IoU with {name}'s joints {other_iou:.3f} "
+                f"> {own_iou:.3f} with {robot}'s); fitted again without them"
+            )
+            without = [
+                m & ~near_silhouettes(np.ones_like(m), s, r)
+                for m, s, r in zip(
+                    full, fit.silhouettes(T_other, other_q[name]), margins, strict=True
+                )
+            ]
+            if all(m.any() for m in without):
+                res_sdr, mask_stacks, found_cso = fit(without, seconds)
+                again = _claimed_by(fit, res_sdr.T_cam_base, mask_stacks, other_q)
+                if again is not None:
+                    warnings.append(
+                        f"poor fit: the estimate of {robot} is explained better by "
+                        f"{again[0]}'s joints (IoU {again[2]:.3f} > {again[1]:.3f})"
+                    )
+            else:
+                warnings.append(f"poor fit: no mask pixels left for {robot} besides {name}'s")
     res, prior = res_sdr, None
     if cfg.method == "sdr_prior":
         t1 = time.perf_counter()
         prior_cfg = replace(cfg.prior, width=cfg.width, roi_margin=cfg.roi_margin)
+        segment_prior = segment
+        if others:
+
+            def segment_prior(imgs: np.ndarray, prior_render: np.ndarray) -> np.ndarray:
+                r = cfg.other_robots_margin * imgs.shape[2]
+                return near_silhouettes(segment(imgs, prior_render), prior_render > 0.5, r)
+
         prior = sdr_with_prior(
             verts,
             fine.faces,
             views,
             images,
-            segment,
+            segment_prior,  # type: ignore[arg-type]
             res_sdr.T_cam_base,
             prior_cfg,  # type: ignore[arg-type]
         )
@@ -402,8 +582,12 @@ def register(
             warnings.append(f"frame {c.index}: IoU {row.round(3).tolist()} (left, right)")
     if len(robots_in_masks) > 1:
         warnings.append(
-            f"recording has robots {robots_in_masks}: masks contain all of them, only {robot}'s "
-            "joints are used"
+            f"recording has robots {robots_in_masks}: masks contain all of them; "
+            + (
+                f"fitted {robot} on the mask pixels within {margins[0]:.0f} px of its estimate"
+                if others
+                else f"{robot} was fitted against every robot's pixels (other_robots_margin=0)"
+            )
         )
     for w in warnings:
         log.warning("%s", w)
