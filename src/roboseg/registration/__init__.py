@@ -6,7 +6,9 @@ cameras, :func:`sdr` / :func:`sdr_multistart` refine it by stereo differentiable
 (optionally letting each segmentation's boundary shift by a fitted offset, so masks that are
 uniformly too fat or too thin do not bias the depth: ``SDRConfig.boundary_offset``);
 :func:`sdr_with_prior` alternates a 4-channel segmentation (prior = render at the estimate) with
-SDR; :func:`register` drives it all on a recording.
+SDR; :func:`register` drives it all on a recording. When the masks show several robots, each
+is fitted on the pixels near its own estimate, and fitted again without another robot's pixels
+when that robot's joints explain its first fit better (``RegisterConfig.other_robots_margin``).
 """
 
 from roboseg.registration.cso import Candidate, CSOConfig, CSOResult, cso
