@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -556,3 +557,48 @@ def test_two_robots_each_fitted_on_its_own_pixels(tmp_path: Path) -> None:
         assert any("within 16 px of its estimate" in w for w in reg.warnings), reg.warnings
         refitted = any("sat on robot_1's pixels" in w for w in reg.warnings)
         assert refitted == (name == "robot_0"), reg.warnings  # measured: 1090 mm off before
+
+
+class PriorEchoSegmentor(GtSegmentor):
+    """A 4-channel model that trusts its prior: the ground truth with a zero prior, else the
+    prior itself."""
+
+    def predict(self, images: np.ndarray, prior: np.ndarray | None = None) -> np.ndarray:
+        if prior is None or not np.any(prior):
+            return super().predict(images)
+        self.calls += 1
+        return np.asarray(prior, np.float32)
+
+
+@pytest.mark.parametrize("offset_m", [0.0, 0.15])
+def test_sdr_prior_that_echoes_a_wrong_prior_is_a_poor_fit(
+    recording: dict, monkeypatch, offset_m: float
+) -> None:
+    """SDR with prior started 15 cm off keeps its start when the model echoes the prior (IoU ≈ 1
+    against those masks); the prior-free segmentation exposes it. Started on the SDR estimate,
+    no such warning."""
+    module = importlib.import_module("roboseg.registration.register")
+
+    def shifted(*args, **kwargs):
+        args = list(args)
+        T = np.array(args[5], dtype=np.float64)
+        T[0, 3] += offset_m
+        args[5] = T
+        return sdr_with_prior(*args, **kwargs)
+
+    monkeypatch.setattr(module, "sdr_with_prior", shifted)
+    table = {}
+    with RecordingReader(recording["path"]) as r:
+        for f in r.frames():
+            left, right = recording["gt"][f.stamp_ns]
+            table[f.left.tobytes()], table[f.right.tobytes()] = left, right
+    cfg = replace(FAST, method="sdr_prior", prior=PriorConfig(iterations=20, refresh_every=10))
+    reg = register(recording["path"], recording["robot"], segmentor=PriorEchoSegmentor(table),
+                   config=cfg)
+    echo = [w for w in reg.warnings if "prior-free segmentation" in w]
+    dt, _ = _errors(reg.T_cam_base, recording["T_true"])
+    if offset_m:
+        assert dt > 100.0 and min(reg.result.per_view_iou.values()) > 0.9  # echoed, "fits"
+        assert echo and not reg.converged, reg.warnings
+    else:
+        assert dt < 10.0 and not echo and reg.converged, reg.warnings

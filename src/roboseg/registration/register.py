@@ -74,7 +74,8 @@ class RegisterConfig:
     pixels within ``other_robots_margin`` × image width of this robot's silhouette (SDR with
     prior does the same around each prior), so the other robots neither pull the fit nor lower
     its IoU; 0 turns this off. A result whose mean IoU is below ``min_iou`` is reported as a
-    poor fit.
+    poor fit, and so is an SDR-with-prior result whose IoU against the prior-free segmentation
+    is.
     """
 
     configs: int = 9
@@ -569,6 +570,15 @@ def register(
             prior_cfg,  # type: ignore[arg-type]
         )
         res = prior.result
+        # masks segmented with the estimate's own prior can echo it, so the estimate must also
+        # explain the prior-free segmentation that SDR fitted
+        free_iou = pooled_iou(fit.silhouettes(res.T_cam_base), mask_stacks)
+        if free_iou < cfg.min_iou:
+            warnings.append(
+                f"poor fit: the SDR-with-prior estimate overlaps the prior-free segmentation "
+                f"with IoU {free_iou:.3f} < {cfg.min_iou} (its IoU against masks segmented "
+                "with its own prior can echo the prior)"
+            )
         mask_stacks = prior.masks
         seconds["sdr_prior"] = time.perf_counter() - t1
     seconds["total"] = time.perf_counter() - t0
