@@ -395,6 +395,16 @@ def test_cli_accepts_model_argument() -> None:
     ]
 
 
+def _gt_table(recording: dict) -> dict[bytes, np.ndarray]:
+    """Ground-truth mask of each image of the recording, keyed by the image's bytes."""
+    table = {}
+    with RecordingReader(recording["path"]) as r:
+        for f in r.frames():
+            left, right = recording["gt"][f.stamp_ns]
+            table[f.left.tobytes()], table[f.right.tobytes()] = left, right
+    return table
+
+
 class GtSegmentor:
     """Stands in for the ONNX model: returns the ground-truth mask of each known image."""
 
@@ -416,11 +426,7 @@ def test_cli_writes_pose_overlays_and_recording(
     import roboseg.segmentor
     from roboseg.cli.register import run
 
-    table = {}
-    with RecordingReader(recording["path"]) as r:
-        for f in r.frames():
-            left, right = recording["gt"][f.stamp_ns]
-            table[f.left.tobytes()], table[f.right.tobytes()] = left, right
+    table = _gt_table(recording)
     fake = GtSegmentor(table)
     monkeypatch.setattr(roboseg.segmentor, "OnnxSegmentor", lambda *a, **k: fake)
     out = tmp_path / "out"
@@ -587,11 +593,7 @@ def test_sdr_prior_that_echoes_a_wrong_prior_is_a_poor_fit(
         return sdr_with_prior(*args, **kwargs)
 
     monkeypatch.setattr(module, "sdr_with_prior", shifted)
-    table = {}
-    with RecordingReader(recording["path"]) as r:
-        for f in r.frames():
-            left, right = recording["gt"][f.stamp_ns]
-            table[f.left.tobytes()], table[f.right.tobytes()] = left, right
+    table = _gt_table(recording)
     cfg = replace(FAST, method="sdr_prior", prior=PriorConfig(iterations=20, refresh_every=10))
     reg = register(recording["path"], recording["robot"], segmentor=PriorEchoSegmentor(table),
                    config=cfg)
