@@ -410,10 +410,10 @@ def _claimed_by(
     masks: list[np.ndarray],
     other_q: dict[str, torch.Tensor],
 ) -> tuple[str, float, float, np.ndarray] | None:
-    """``(robot, own IoU, its IoU, its pose)`` when another robot's joints, fitted by a short SDR
-    from the estimate to ``masks`` (the pixels near the estimate), match them better (by
-    :data:`CLAIM_MARGIN`) than the registered robot's: the estimate then sits on that robot's
-    pixels. None otherwise."""
+    """``(robot, own IoU, its IoU, its pose)`` when another robot's joints, fitted by SDR (at
+    the coarse width) from the estimate to ``masks`` (the pixels near the estimate), match them
+    better (by :data:`CLAIM_MARGIN`) than the registered robot's: the estimate then sits on that
+    robot's pixels. None otherwise."""
     own = pooled_iou(fit.silhouettes(T_cam_base), masks)
     roi_views, roi_masks = crop_to_masks(fit.views, masks, fit.cfg.roi_margin)
     views = views_for_width(roi_views, fit.cfg.coarse_width or fit.cfg.width)
