@@ -6,8 +6,9 @@ vertices posed by forward kinematics for configuration ``c`` (base frame, fixed)
 differentiable silhouette (:mod:`roboseg.render.soft`) and ``f`` one of the paper's costs
 (:mod:`.losses`). AdamW with a reduce-on-plateau learning rate; stops when the best cost stops
 improving (``converged``), at ``max_iterations``, or flags ``diverged`` when the cost becomes
-non-finite, the robot leaves every image of a view, or the IoU collapses. The pose returned is the
-one with the lowest cost seen; a diverged result says so in ``reason``.
+non-finite, the robot leaves every image of a view, or the IoU collapses. A result that did not
+diverge is then polished by L-BFGS on the same cost (kept only when it lowers it). The pose
+returned is the one with the lowest cost seen; a diverged result says so in ``reason``.
 """
 
 from __future__ import annotations
@@ -51,6 +52,13 @@ class SDRConfig:
     at distance d outside S raises the score while exp(−d/σ) > (1 − f)/2), which is negligible at
     full resolution but biases depth by centimetres on renders ~160 px wide.
 
+    ``polish_iterations`` (0: off): L-BFGS iterations (strong-Wolfe line search) from the best
+    AdamW pose. Near the optimum the cost is piecewise quadratic in the pose (each boundary
+    pixel's soft value moves linearly with its contour edge), where AdamW's step sizes and the
+    plateau schedule stall about a millimetre short (measured: 1.4–2.7 mm tool-centre error from
+    a start 6 mm off, 12 configurations at ~400 px; 0.2–0.3 mm after 20 L-BFGS evaluations).
+    The polished pose is kept only when its cost is lower.
+
     ``boundary_offset`` (px at the render resolution, 0: off): each segmentation is compared
     after shifting its boundary by the offset ``|e| ≤ boundary_offset`` that best matches the
     hard render (:meth:`RegistrationTarget.best_offsets`), re-chosen every ``offset_every``
@@ -74,12 +82,15 @@ class SDRConfig:
     collapse_ratio: float = 0.5
     boundary_offset: float = 0.0
     offset_every: int = 10
+    polish_iterations: int = 20
 
     def __post_init__(self) -> None:
         if self.boundary_offset < 0:
             raise CameraError(f"boundary_offset must be >= 0 px, got {self.boundary_offset}")
         if self.offset_every < 1:
             raise CameraError(f"offset_every must be >= 1, got {self.offset_every}")
+        if self.polish_iterations < 0:
+            raise CameraError(f"polish_iterations must be >= 0, got {self.polish_iterations}")
 
 
 @dataclass(frozen=True)
@@ -157,7 +168,10 @@ class StereoObjective:
             soft = renderer.soft(verts, view.K.to(verts))
             hard = soft.detach() > 0.5
             e = self.offsets[:, i] if use_offsets else None
-            losses.append(target.loss(soft, self.loss_name, e).mean())
+            # float64: the cost is a large constant (the squared inside distances) plus the
+            # sub-pixel boundary terms; in float32 its rounding (~3e-6 at 960 px) exceeds the
+            # cost differences of poses a millimetre apart, and comparisons become noise
+            losses.append(target.loss(soft.double(), self.loss_name, e).mean())
             ious.append(iou(hard, target.masks))
             areas.append(hard.sum(dim=(-2, -1)))
         return torch.stack(losses).sum(), torch.stack(ious, 1), torch.stack(areas, 1)
@@ -276,7 +290,61 @@ def sdr(
         if it % 25 == 0:
             lr = opt.param_groups[0]["lr"]
             log.debug("SDR %d: loss %.5f IoU %.4f lr %.2e", it, value, mean_iou, lr)
+    if reason != "diverged" and cfg.polish_iterations > 0 and best[2] is not None:
+        best = _polish(obj, best[1], cfg, initial_iou or 0.0)
     return _result(obj, best, it, reason, history)
+
+
+def _polish(
+    obj: StereoObjective, pose: torch.Tensor, cfg: SDRConfig, initial_iou: float
+) -> tuple[float, torch.Tensor, torch.Tensor]:
+    """L-BFGS from the 9D ``pose`` on ``obj`` (boundary offsets chosen at ``pose`` and held);
+    returns ``(cost, pose, ious)`` of whichever of the two is lower."""
+    obj.update_offsets(pose9d_to_matrix(pose))
+    with torch.no_grad():
+        loss0, ious0, _ = obj(pose9d_to_matrix(pose))
+    start = (float(loss0), pose, ious0)
+    # re-parametrised with orthonormal 6D columns: AdamW lets their scale drift, which skews the
+    # quasi-Newton model's curvature between rotation and translation
+    p = matrix_to_pose9d(pose9d_to_matrix(pose.detach())).requires_grad_(True)
+    opt = torch.optim.LBFGS(
+        [p],
+        lr=1.0,
+        max_iter=cfg.polish_iterations,
+        history_size=20,
+        line_search_fn="strong_wolfe",
+        tolerance_grad=1e-12,
+        tolerance_change=1e-14,
+    )
+    evaluations = 0
+
+    def closure() -> torch.Tensor:
+        nonlocal evaluations
+        evaluations += 1
+        opt.zero_grad()
+        loss, _, _ = obj(pose9d_to_matrix(p))
+        loss.backward()
+        return loss
+
+    try:
+        opt.step(closure)
+        with torch.no_grad():
+            loss, ious, areas = obj(pose9d_to_matrix(p.detach()))
+    except CameraError as e:  # a line-search trial put the robot behind a camera
+        log.debug("SDR polish abandoned: %s", e)
+        return start
+    value, mean_iou = float(loss), float(ious.mean())
+    ok = (
+        math.isfinite(value)
+        and bool(torch.isfinite(p).all())
+        and not bool((areas.sum(0) == 0).any())
+        and not _collapsed(mean_iou, initial_iou, cfg.collapse_ratio)
+    )
+    if not ok or value >= start[0]:
+        log.debug("SDR polish kept the AdamW pose (%.6f vs %.6f)", value, start[0])
+        return start
+    log.debug("SDR polish: loss %.6f -> %.6f in %d evaluations", start[0], value, evaluations)
+    return value, p.detach().clone(), ious
 
 
 def _result(
@@ -335,7 +403,7 @@ def sdr_multistart(
     cfg = config or SDRConfig()
     obj = StereoObjective(vertices_base, faces, views, masks, cfg.loss, cfg.boundary_offset)
     if screen_iterations is not None and screen_iterations < cfg.max_iterations:
-        short = replace(cfg, max_iterations=max(1, screen_iterations))
+        short = replace(cfg, max_iterations=max(1, screen_iterations), polish_iterations=0)
         screened = [sdr(vertices_base, faces, views, masks, T0, short, obj) for T0 in starts]
         costs = [obj.plain_cost(r.T_cam_base) for r in screened]
         order = sorted(

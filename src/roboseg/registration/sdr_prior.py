@@ -134,9 +134,10 @@ def sdr_with_prior(
         budget = min(cfg.refresh_every, cfg.iterations - r * cfg.refresh_every)
         roi_views, roi_masks = crop_to_masks(views, masks, cfg.roi_margin)
         sdr_views = views_for_width(roi_views, cfg.width)
-        res = sdr(
-            vertices_base, faces, sdr_views, roi_masks, T, replace(cfg.sdr, max_iterations=budget)
-        )
+        # the L-BFGS polish only after the last refresh: earlier rounds' masks are superseded
+        polish = cfg.sdr.polish_iterations if r == cfg.rounds - 1 else 0
+        round_cfg = replace(cfg.sdr, max_iterations=budget, polish_iterations=polish)
+        res = sdr(vertices_base, faces, sdr_views, roi_masks, T, round_cfg)
         done += res.iterations
         history.extend(res.history)
         if res.reason == "diverged":
