@@ -377,10 +377,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    if args.quick:
-        args.poses, args.subsets, args.sizes, args.placements = 1, 2, [3, 12], 4
-        args.frames, args.swarm_iterations, args.particles = 30, 15, 500
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.quick:  # smaller defaults; options given explicitly still win
+        parser.set_defaults(
+            poses=1,
+            subsets=2,
+            sizes=[3, 12],
+            placements=4,
+            frames=30,
+            swarm_iterations=15,
+            particles=500,
+        )
+        args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)

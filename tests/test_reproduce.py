@@ -116,6 +116,33 @@ def test_stages_tolerant_failure_is_recorded_and_skipped(tmp_path: Path) -> None
     assert stages.status("strict") == (None, None)
 
 
+def test_stages_side_by_side_overlap_and_count_once_in_wall_time(tmp_path: Path) -> None:
+    from roboseg.reproduce import Step
+
+    stages = ReproduceStages(tmp_path, total=3, runner="fork")
+    nap = "import time; time.sleep(1.5); print('{}')"
+    steps = [
+        Step("a", [sys.executable, "-c", nap.format("a")], parallel=True),
+        Step("b", [sys.executable, "-c", nap.format("b")], parallel=True),
+        Step("c", [sys.executable, "-c", "raise SystemExit(2)"], tolerant=True, parallel=True),
+    ]
+    assert stages.run_side_by_side(steps, jobs=2) == 3
+    assert (tmp_path / "logs" / "b.stdout").read_text() == "b\n"
+    assert stages.status("c")[1] == 2
+    (a0, a1), (b0, b1) = stages.interval("a"), stages.interval("b")
+    assert a0 < b1 and b0 < a1  # they overlapped
+    stage_sum = sum(stages.status(n)[0] for n in "abc")
+    wall = stages.wall_seconds(["a", "b", "c"])
+    assert 1.5 <= wall < stage_sum - 1.0, (wall, stage_sum)
+    assert stages.run_side_by_side(steps, jobs=2) == 0  # all done: skipped
+    with pytest.raises(SystemExit, match="exit status 4"):
+        stages.run_side_by_side(
+            [Step("d", [sys.executable, "-c", "raise SystemExit(4)"], parallel=True),
+             Step("e", [sys.executable, "-c", "print('e')"], parallel=True)], jobs=2,
+        )
+    assert stages.status("e")[1] == 0  # the other one still finished
+
+
 def test_stages_forked_function(tmp_path: Path) -> None:
     stages = ReproduceStages(tmp_path, total=2, runner="fork")
     target = tmp_path / "written.txt"
@@ -171,6 +198,8 @@ def test_at_a_glance_counts_failures_convergence_and_annotation_quality() -> Non
     assert lines[3] == ("- draped test registrations converged: 1 of 2; median tool-centre "
                         "error 3.0–12.5 mm")
     assert len(at_a_glance(stages[:1], "-", None, None)) == 2
+    timed = at_a_glance(stages, "-", None, None, wall_seconds=150.0)
+    assert timed[0].endswith("; 2.5 min wall clock; 3.0 min of stage time in all")
 
 
 def test_portable_commands_name_python_and_relative_paths(tmp_path: Path) -> None:

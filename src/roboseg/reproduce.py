@@ -28,6 +28,7 @@ import importlib.metadata
 import io
 import json
 import logging
+import math
 import os
 import shlex
 import shutil
@@ -37,6 +38,7 @@ import threading
 import time
 import traceback
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, NoReturn
@@ -64,6 +66,8 @@ class Step:
 
     A ``tolerant`` command that fails is recorded (exit status in its marker) and the run goes on:
     used where a failure is itself a result (a registration that does not converge, a bench).
+    Consecutive ``parallel`` commands are independent and single-threaded: they run side by
+    side, ``jobs`` at a time, each as its own process.
     """
 
     name: str
@@ -71,6 +75,7 @@ class Step:
     fn: Callable[[], None] | None = None
     tolerant: bool = False
     cwd: Path | None = None
+    parallel: bool = False
 
 
 def _pump(stream: IO[str], sinks: Sequence[IO[str]], lock: threading.Lock) -> None:
@@ -92,6 +97,7 @@ class ReproduceStages(Stages):
         self.runner = runner
         self.total = total
         self.count = 0
+        self._count_lock = threading.Lock()
         self.t0 = time.perf_counter()
         self.logs = root / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
@@ -107,17 +113,36 @@ class ReproduceStages(Stages):
             return None, None
         lines = marker.read_text().splitlines()
         seconds = float(lines[0].split()[0]) if lines else None
-        code = int(lines[1].split()[-1]) if len(lines) > 1 else 0
+        code = next((int(x.split()[-1]) for x in lines if x.startswith("exit status")), 0)
         return seconds, code
 
+    def interval(self, name: str) -> tuple[float, float] | None:
+        """``(start, end)`` (Unix time, s) of a finished stage, if its marker records it."""
+        marker = self.marker(name)
+        if not marker.exists():
+            return None
+        for line in marker.read_text().splitlines():
+            if line.startswith("ran "):
+                start, end = line.split()[1:3]
+                return float(start), float(end)
+        return None
+
     def _launch(
-        self, argv: Sequence[str], cwd: Path | None, fn: Callable[[], Any] | None = None
+        self,
+        argv: Sequence[str],
+        cwd: Path | None,
+        fn: Callable[[], Any] | None = None,
+        process: bool = False,
     ) -> tuple[Callable[[], int], IO[str], IO[str]]:
         """Start a stage: ``(wait() -> exit status, stdout, stderr)``. With the fork runner a
         ``roboseg-*`` command (or ``fn``) runs in a forked child of this process, which has
-        imported the libraries once (the same command, without its start-up cost)."""
+        imported the libraries once (the same command, without its start-up cost); with
+        ``process`` (stages running side by side: no fork from a threaded parent) the command
+        runs as its own process."""
+        if process and fn is not None:
+            raise ValueError("a stage run as its own process must be a command, not a function")
         target = fn
-        if target is None and self.runner == "fork" and cwd is None:
+        if target is None and self.runner == "fork" and cwd is None and not process:
             target = _entry_point(argv[0])
         if target is None:
             proc = subprocess.Popen(
@@ -144,7 +169,12 @@ class ReproduceStages(Stages):
         return wait, os.fdopen(out_r, errors="replace"), os.fdopen(err_r, errors="replace")
 
     def _execute(
-        self, name: str, argv: Sequence[str], cwd: Path | None, fn: Callable[[], Any] | None
+        self,
+        name: str,
+        argv: Sequence[str],
+        cwd: Path | None,
+        fn: Callable[[], Any] | None,
+        process: bool = False,
     ) -> int:
         """Run one stage, its output teed to the terminal and the stage's log files."""
         lock = threading.Lock()
@@ -154,7 +184,7 @@ class ReproduceStages(Stages):
         ):
             full.write(f"$ {shlex.join(argv)}\n# {today()} on {machine_description()}\n")
             full.flush()
-            wait, stdout, stderr = self._launch(argv, cwd, fn)
+            wait, stdout, stderr = self._launch(argv, cwd, fn, process)
             pumps = [
                 threading.Thread(target=_pump, args=(stdout, [sys.stdout, full, out], lock)),
                 threading.Thread(target=_pump, args=(stderr, [sys.stderr, full], lock)),
@@ -176,29 +206,67 @@ class ReproduceStages(Stages):
         tolerant: bool = False,
         cwd: Path | None = None,
         fn: Callable[[], Any] | None = None,
+        process: bool = False,
     ) -> bool:
         """Run stage ``name`` (the command ``argv``, or ``fn`` in a child process) unless it
         already finished; a failure raises ``SystemExit`` unless ``tolerant`` (then it is
-        recorded in the marker and the run goes on)."""
-        self.count += 1
+        recorded in the marker and the run goes on). ``process``: see :meth:`_launch`."""
+        with self._count_lock:
+            self.count += 1
         if self.marker(name).exists():
             print(f"{self._prefix()} [{name}] done already, skipped", flush=True)
             return False
         shown = shlex.join(argv) if fn is None else "(in a child process)"
         print(f"{self._prefix()} [{name}] $ {shown}", flush=True)
-        t0 = time.perf_counter()
-        code = self._execute(name, argv, cwd, fn)
+        t0, started = time.perf_counter(), time.time()
+        code = self._execute(name, argv, cwd, fn, process)
         seconds = time.perf_counter() - t0
         if code != 0 and not tolerant:
             raise SystemExit(
                 f"[{name}] failed with exit status {code} (log: {self.logs / f'{name}.log'})"
             )
         self.marker(name).write_text(
-            f"{seconds:.1f} s\n" + (f"exit status {code}\n" if code else "")
+            f"{seconds:.1f} s\n"
+            + (f"exit status {code}\n" if code else "")
+            + f"ran {started:.1f} {time.time():.1f}\n"
         )
         note = f", exit status {code} (recorded, continuing)" if code else ""
         print(f"{self._prefix()} [{name}] finished in {seconds:.0f} s{note}", flush=True)
         return True
+
+    def run_side_by_side(self, steps: Sequence[Step], jobs: int) -> int:
+        """Run independent command ``steps`` (see :attr:`Step.parallel`) ``jobs`` at a time,
+        each as its own process; returns how many ran. A failing non-tolerant one raises
+        ``SystemExit`` once the others have finished."""
+        def one(step: Step) -> bool:
+            assert step.argv is not None, f"{step.name}: only commands run side by side"
+            return self.run(
+                step.name, step.argv, tolerant=step.tolerant, cwd=step.cwd, process=jobs > 1
+            )
+
+        if jobs <= 1 or len(steps) <= 1:
+            return sum(one(s) for s in steps)
+        with ThreadPoolExecutor(max_workers=jobs) as pool:
+            futures = [pool.submit(one, s) for s in steps]
+        return sum(f.result() for f in futures)
+
+    def wall_seconds(self, names: Sequence[str]) -> float:
+        """Wall-clock time (s) covered by the recorded runs of stages ``names`` (the union of
+        their intervals: stages side by side count once); stages without one add their
+        duration."""
+        spans, loose = [], 0.0
+        for name in names:
+            span = self.interval(name)
+            if span is not None:
+                spans.append(span)
+            else:
+                loose += self.status(name)[0] or 0.0
+        total, end = 0.0, -math.inf
+        for a, b in sorted(spans):
+            if b > end:
+                total += b - max(a, end)
+                end = b
+        return total + loose
 
 
 def _entry_point(script: str) -> Callable[[], Any] | None:
@@ -552,7 +620,9 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
                 _register_argv(cfg, rec, layout.recording(rec), layout.bootstrap_onnx, "sdr",
                                "undraped", robot, layout.undraped_pose(rec, robot).parent),
                 tolerant=True,  # a poor fit still writes pose.yaml: it is used and reported
+                parallel=True,
             ))
+    for rec in layout.study:
         steps.append(Step(f"calibration_{rec.stem}", fn=lambda r=rec: write_calibration(layout, r)))
     subsets = list(dict.fromkeys(m.subset for m in layout.models))
     for subset in subsets:
@@ -589,6 +659,7 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
                                layout.onnx(str(chosen[method])), method, "draped", robot,
                                layout.draped_pose(method, robot).parent),
                 tolerant=True,
+                parallel=True,
             ))
     steps.append(Step("localisation_errors", fn=lambda: measure_localisation(layout, cfg)))
 
@@ -638,16 +709,27 @@ def run_reproduce(cfg: DictConfig) -> Path:
         _preimport()
     print(f"reproduce: {len(plan)} stages into {out} (recipe={cfg.recipe}); finished stages "
           "are skipped", flush=True)
-    ran = 0
-    for step in plan:
+    ran, jobs, i = 0, max(1, int(cfg.jobs)), 0
+    while i < len(plan):
+        step = plan[i]
+        if step.parallel:  # the run of consecutive side-by-side stages starting here
+            j = i
+            while j < len(plan) and plan[j].parallel:
+                j += 1
+            ran += stages.run_side_by_side(plan[i:j], jobs)
+            i = j
+            continue
         argv = step.argv if step.argv is not None else [step.name]
         ran += stages.run(step.name, argv, tolerant=step.tolerant, cwd=step.cwd, fn=step.fn)
+        i += 1
     page = write_page(cfg, layout, plan, stages)
     total = time.perf_counter() - t0
     stage_sum = sum(stages.status(s.name)[0] or 0.0 for s in plan)
+    wall = stages.wall_seconds([s.name for s in plan])
     print(f"results page: {page}")
     print(f"total time: {total / 60:.1f} min this run ({ran} of {len(plan)} stages ran); "
-          f"all stages together: {stage_sum / 60:.1f} min", flush=True)
+          f"all stages: {wall / 60:.1f} min wall clock, {stage_sum / 60:.1f} min of stage "
+          "time", flush=True)
     return page
 
 

@@ -291,12 +291,14 @@ def at_a_glance(
     bootstrap_val_iou: str,
     annotation: Any,
     localisation: Any,
+    wall_seconds: float | None = None,
 ) -> list[str]:
-    """Bullet lines summing up a run: stage time and failures, the bootstrap segmenter, the
+    """Bullet lines summing up a run: time and failures, the bootstrap segmenter, the
     undraped registrations and self-annotation, the draped registrations.
 
     ``stage_status`` holds ``(name, seconds, exit status)`` per stage (``None``: not run);
-    ``annotation`` / ``localisation`` are the metrics files' contents (or ``None``).
+    ``annotation`` / ``localisation`` are the metrics files' contents (or ``None``);
+    ``wall_seconds`` the wall-clock time the stages took (side-by-side stages counted once).
     """
     ran = [(n, t, c) for n, t, c in stage_status if t is not None]
     failed = [n for n, _, c in ran if c]
@@ -306,6 +308,7 @@ def at_a_glance(
         f"- stages: {len(ran) - len(failed)} of {len(stage_status)} ok, {len(failed)} failed"
         + (f" ({', '.join(failed)})" if failed else "")
         + (f", {len(missing)} not run" if missing else "")
+        + (f"; {wall_seconds / 60:.1f} min wall clock" if wall_seconds is not None else "")
         + f"; {total_min:.1f} min of stage time in all",
         f"- bootstrap segmenter (undraped lab frames): validation IoU {bootstrap_val_iou}",
     ]
@@ -358,6 +361,7 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
         _val_iou(logs, "bootstrap"),
         read_json(out / "metrics" / "annotation.json"),
         read_json(out / "metrics" / "localisation.json"),
+        stages.wall_seconds([step.name for step in plan]),
     )
     add("\n".join(glance) + "\n")
 

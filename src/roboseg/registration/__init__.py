@@ -3,8 +3,9 @@
 ``T_cam_base`` (base frame → left OpenCV optical frame, metres) is the unknown; the right camera
 follows through the fixed ``T_right_left``. :func:`cso` initialises it by a swarm of virtual
 cameras, :func:`sdr` / :func:`sdr_multistart` refine it by stereo differentiable rendering
-(optionally letting each segmentation's boundary shift by a fitted offset, so masks that are
-uniformly too fat or too thin do not bias the depth: ``SDRConfig.boundary_offset``);
+(AdamW, then an L-BFGS polish for the last fraction of a millimetre; optionally letting each
+segmentation's boundary shift by a fitted offset, so masks that are uniformly too fat or too
+thin do not bias the depth: ``SDRConfig.boundary_offset``);
 :func:`sdr_with_prior` alternates a 4-channel segmentation (prior = render at the estimate) with
 SDR; :func:`register` drives it all on a recording. When the masks show several robots, each
 is fitted on the pixels near its own estimate, and fitted again without another robot's pixels
