@@ -102,9 +102,9 @@ class ReproduceStages(Stages):
         self.logs = root / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
 
-    def _prefix(self) -> str:
+    def _prefix(self, index: int) -> str:
         minutes = (time.perf_counter() - self.t0) / 60
-        return f"[{self.count}/{self.total} {minutes:5.1f} min]"
+        return f"[{index}/{self.total} {minutes:5.1f} min]"
 
     def status(self, name: str) -> tuple[float | None, int | None]:
         """``(seconds, exit status)`` from a stage's marker; ``(None, None)`` when not done."""
@@ -213,11 +213,12 @@ class ReproduceStages(Stages):
         recorded in the marker and the run goes on). ``process``: see :meth:`_launch`."""
         with self._count_lock:
             self.count += 1
+            index = self.count  # this stage's number (others may start while it runs)
         if self.marker(name).exists():
-            print(f"{self._prefix()} [{name}] done already, skipped", flush=True)
+            print(f"{self._prefix(index)} [{name}] done already, skipped", flush=True)
             return False
         shown = shlex.join(argv) if fn is None else "(in a child process)"
-        print(f"{self._prefix()} [{name}] $ {shown}", flush=True)
+        print(f"{self._prefix(index)} [{name}] $ {shown}", flush=True)
         t0, started = time.perf_counter(), time.time()
         code = self._execute(name, argv, cwd, fn, process)
         seconds = time.perf_counter() - t0
@@ -231,7 +232,7 @@ class ReproduceStages(Stages):
             + f"ran {started:.1f} {time.time():.1f}\n"
         )
         note = f", exit status {code} (recorded, continuing)" if code else ""
-        print(f"{self._prefix()} [{name}] finished in {seconds:.0f} s{note}", flush=True)
+        print(f"{self._prefix(index)} [{name}] finished in {seconds:.0f} s{note}", flush=True)
         return True
 
     def run_side_by_side(self, steps: Sequence[Step], jobs: int) -> int:
