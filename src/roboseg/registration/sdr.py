@@ -56,7 +56,7 @@ class SDRConfig:
     AdamW pose. Near the optimum the cost is piecewise quadratic in the pose (each boundary
     pixel's soft value moves linearly with its contour edge), where AdamW's step sizes and the
     plateau schedule stall about a millimetre short (measured: 1.4–2.7 mm tool-centre error from
-    a start 6 mm off, 12 configurations at ~400 px; 0.2–0.3 mm after 20 L-BFGS evaluations).
+    a start 6 mm off, 12 configurations at ~400 px; 0.2–0.4 mm after 20 L-BFGS evaluations).
     The polished pose is kept only when its cost is lower.
 
     ``boundary_offset`` (px at the render resolution, 0: off): each segmentation is compared
