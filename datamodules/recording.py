@@ -70,12 +70,14 @@ _NO_PIXELS = np.zeros(0, np.uint8)
 
 @dataclass(frozen=True)
 class RecordingEntry:
-    """One annotated recording of the manifest (``draped_from_ns``: first draped stamp, ns)."""
+    """One annotated recording of the manifest (``draped_from_ns``: first draped stamp, ns;
+    ``frames``: frames kept by the annotation, None when the manifest does not say)."""
 
     path: Path
     split: str
     draped_from_ns: int | None
     robots: tuple[str, ...]
+    frames: int | None = None
 
 
 @dataclass(frozen=True)
@@ -108,12 +110,14 @@ def read_manifest(root: str | Path) -> Manifest:
         for rec in doc["recordings"]:
             split = str(rec["split"])
             draped = rec.get("draped_from_ns")
+            kept = rec.get("frames_kept")
             entries.append(
                 RecordingEntry(
                     path=root / str(rec["file"]),
                     split=split,
                     draped_from_ns=None if draped is None else int(draped),
                     robots=tuple(str(r) for r in rec.get("robots") or ()),
+                    frames=None if kept is None else int(kept),
                 )
             )
     except RobosegError:
@@ -522,8 +526,15 @@ class RecordingDataModule(pl.LightningDataModule):
 
     def _entries(self, split: str) -> list[RecordingEntry]:
         entries = self.manifest.split(split)
+        empty = [e for e in entries if e.frames == 0]
+        if empty:
+            log.warning("%s: %d recording(s) of split %r kept no frames when annotated; "
+                        "skipped: %s", self.root / MANIFEST, len(empty), split,
+                        ", ".join(e.path.name for e in empty))
+            entries = [e for e in entries if e.frames != 0]
         if not entries:
-            raise DatasetError(f"{self.root / MANIFEST}: split {split!r} has no recordings")
+            raise DatasetError(f"{self.root / MANIFEST}: split {split!r} has no recordings"
+                               + (" with frames" if empty else ""))
         return entries
 
     def _check_subset(self) -> None:

@@ -175,6 +175,36 @@ def test_empty_split_names_split_and_path(dataset: Path, tmp_path: Path) -> None
         dm.setup("fit")
 
 
+def test_recordings_that_kept_no_frames_are_skipped_by_name(
+    dataset: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """An annotated recording with no frames (no image topics at all) is skipped with a warning;
+    a split left with nothing raises, saying so."""
+    doc = json.loads((dataset / "manifest.json").read_text())
+    root = tmp_path / "with_empty"
+    root.mkdir()
+    for r in doc["recordings"]:
+        (root / r["file"]).symlink_to(dataset / r["file"])
+    with RecordingWriter(root / "still_00.mcap") as w:  # what annotation writes keeping nothing
+        w.write_tf_static([], 0)
+    empty = {**doc["recordings"][0], "file": "still_00.mcap", "frames_kept": 0}
+    (root / "manifest.json").write_text(json.dumps({**doc, "recordings": [*doc["recordings"],
+                                                                          empty]}))
+    dm = RecordingDataModule(root, image_size=[32, 32], batch_size=2, num_workers=0)
+    with caplog.at_level("WARNING", logger="datamodules.recording"):
+        dm.setup("fit")
+    assert "still_00.mcap" in caplog.text and "kept no frames" in caplog.text
+    full = RecordingDataModule(dataset, image_size=[32, 32], batch_size=2, num_workers=0)
+    full.setup("fit")
+    assert dm.datasets["train"].n_frames() == full.datasets["train"].n_frames() > 0
+    only_empty = {**doc, "recordings": [empty, *[r for r in doc["recordings"]
+                                                 if r["split"] == "val"]]}
+    (root / "manifest.json").write_text(json.dumps(only_empty))
+    dm = RecordingDataModule(root, image_size=[32, 32], batch_size=2, num_workers=0)
+    with pytest.raises(DatasetError, match="split 'train' has no recordings with frames"):
+        dm.setup("fit")
+
+
 # --- datasets ----------------------------------------------------------------------------------
 
 
