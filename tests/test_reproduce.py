@@ -221,3 +221,20 @@ def test_plan_study_gives_every_recording_its_own_seed() -> None:
     cfg.lab.recordings = {"train": 101, "val": 1}  # lab_train_100 lands on lab_val_00's seed
     with pytest.raises(SystemExit, match="lab_train_100 and lab_val_00 would share seed 11000"):
         plan_study(cfg)
+
+
+def test_lab_recordings_fold_into_one_row_per_split() -> None:
+    from omegaconf import OmegaConf
+
+    from roboseg.reproduce import plan_study
+    from roboseg.reproduce_report import lab_rows
+
+    cfg = OmegaConf.load(ROOT / "conf" / "reproduce.yaml")
+    cfg.lab.recordings = {"train": 3, "val": 1}
+    lab, _ = plan_study(cfg)
+    rows = lab_rows(lab)
+    assert [row[2] for row in rows] == ["train", "val"]
+    train, val = rows
+    assert train[0] == "lab_train_00 … lab_train_02 (3)" and train[3] == "1"
+    assert train[4] == f"{lab[0].seed} … {lab[2].seed}"
+    assert val[0] == "lab_val_00 (1)" and val[4] == str(lab[3].seed)

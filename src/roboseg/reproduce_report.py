@@ -221,6 +221,18 @@ def md_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def lab_rows(lab: Sequence[Any]) -> list[list[Any]]:
+    """One row per split of the (many, short) lab recordings: names, count, robots, seeds."""
+    rows = []
+    for split in dict.fromkeys(r.split for r in lab):
+        recs = [r for r in lab if r.split == split]
+        names = recs[0].stem if len(recs) == 1 else f"{recs[0].stem} … {recs[-1].stem}"
+        seeds = str(recs[0].seed) if len(recs) == 1 else f"{recs[0].seed} … {recs[-1].seed}"
+        robots = "/".join(str(v) for v in dict.fromkeys(r.robots for r in recs))
+        rows.append([f"{names} ({len(recs)})", "lab (bootstrap)", split, robots, seeds])
+    return rows
+
+
 def copy_figure(src: Path, figures: Path, name: str) -> str | None:
     """Copy ``src`` into ``figures/name``; return the name, or None when ``src`` is missing."""
     if not src.is_file():
@@ -382,7 +394,7 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
         "recording. Nothing downstream reads the operating-room ground truth except the "
         "evaluation on this page.\n"
     )
-    rows = [[r.stem, "lab (bootstrap)", r.split, r.robots, r.seed] for r in layout.lab]
+    rows = lab_rows(layout.lab)
     rows += [[r.stem, "operating room", r.split, r.robots, r.seed] for r in layout.study]
     add(md_table(["recording", "role", "split", "robots", "seed (camera placement)"], rows))
 
