@@ -603,6 +603,7 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
     steps.append(Step("annotate_lab", [
         script("roboseg-annotate"), f"in={layout.recording(layout.lab[0]).parent}",
         f"out={lab_root}", "phase=undraped", *cfg.annotate.overrides,
+        *cfg.lab.get("annotate_overrides", []),
     ]))
     steps += _train_steps(
         layout, "bootstrap", str(cfg.lab.experiment), lab_root,
