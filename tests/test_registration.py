@@ -336,6 +336,38 @@ def test_particles_sampled_and_projected_inside_domain() -> None:
     torch.testing.assert_close(p[:, 6], torch.tensor([0.4, -0.4], dtype=torch.float64))
 
 
+def test_eye_elevation_band_is_sampled_uniformly_and_projected() -> None:
+    """Eyes in the band of elevations 0.2-1.0 rad above ``about``: every one inside, uniform on
+    the sphere's band (z/r uniform in [sin 0.2, sin 1.0]); projection clamps the elevation and
+    keeps the azimuth and radius."""
+    import math
+
+    from roboseg.errors import CameraError
+    from roboseg.registration.cso import CSOConfig, project_particles, sample_particles
+
+    cfg = CSOConfig(r_min=1.0, r_max=2.0, about=(0.0, 0.0, 0.5), elevation_range=(0.2, 1.0))
+    x = sample_particles(4000, cfg, torch.Generator().manual_seed(0))
+    e = x[:, :3] - torch.tensor(cfg.about, dtype=torch.float64)
+    r = e.norm(dim=1)
+    sin_el = e[:, 2] / r
+    assert r.min() >= 1.0 and r.max() <= 2.0 + 1e-9
+    assert sin_el.min() >= math.sin(0.2) - 1e-9 and sin_el.max() <= math.sin(1.0) + 1e-9
+    # uniform on the band: the lower half of its z range holds half of the eyes
+    mid = 0.5 * (math.sin(0.2) + math.sin(1.0))
+    assert (sin_el < mid).double().mean().item() == pytest.approx(0.5, abs=0.03)
+    assert (r < 1.5).double().mean().item() == pytest.approx((1.5**3 - 1) / 7, abs=0.03)
+    # an eye below the band (elevation -0.5 rad, azimuth 90°, radius 1.5) is lifted to 0.2 rad
+    below = torch.tensor([[0.0, 1.5 * math.cos(-0.5), 0.5 + 1.5 * math.sin(-0.5),
+                           0, 0, 0.5, 0.0]], dtype=torch.float64)
+    p = project_particles(below, cfg)[0]
+    expected = [0.0, 1.5 * math.cos(0.2), 0.5 + 1.5 * math.sin(0.2)]
+    torch.testing.assert_close(p[:3], torch.tensor(expected, dtype=torch.float64))
+    inside = x[:5].clone()
+    torch.testing.assert_close(project_particles(inside, cfg), inside)
+    with pytest.raises(CameraError, match="elevation_range"):
+        CSOConfig(elevation_range=(1.0, 0.2))
+
+
 def test_cso_is_seeded_and_scores_initial_swarm(scene: dict) -> None:
     from roboseg.registration.cso import CSOConfig, cso
 

@@ -206,6 +206,8 @@ def config_from_cfg(cfg: DictConfig) -> RegisterConfig:
         assert isinstance(cso_kw, dict) and isinstance(sdr_kw, dict)
         if "about" in cso_kw:
             cso_kw["about"] = tuple(float(a) for a in cso_kw["about"])
+        if "elevation_range" in cso_kw:
+            cso_kw["elevation_range"] = tuple(float(a) for a in cso_kw["elevation_range"])
         sdr_cfg = SDRConfig(**sdr_kw)
         return RegisterConfig(
             configs=int(cfg.configs),

@@ -3,7 +3,9 @@
 Each particle is a virtual left camera ``x = [eye (3), centre (3), roll (1)]`` in the robot base
 frame (metres, radians): the camera sits at ``eye``, looks at ``centre`` and is rolled about its
 optical axis; ``T_cam_base = look_at(eye, centre, roll)``. Eyes start uniformly distributed in a
-hollow sphere ``r_min ≤ |eye − about| ≤ r_max``, centres uniformly in the ball
+hollow sphere ``r_min ≤ |eye − about| ≤ r_max`` (optionally only the band of elevations
+``elevation_range`` above the horizontal plane through ``about``, base z up: cameras that look
+down at the robot), centres uniformly in the ball
 ``|centre − about| ≤ centre_radius``, rolls uniformly in ``[−roll_range, roll_range]``.
 
 Fitness = IoU of hard silhouettes of the (decimated) robot, rendered at low resolution, against
@@ -44,7 +46,8 @@ class CSOConfig:
     (height follows each view's aspect ratio); ``chunk``: renders per rasteriser call;
     ``v_max``: largest step per iteration as a fraction of each coordinate's domain width;
     ``n_candidates`` distinct results whose poses differ by more than ``min_separation`` metres
-    or ``min_separation_angle`` radians.
+    or ``min_separation_angle`` radians. ``elevation_range``: the eye's elevation (radians) above
+    the horizontal plane through ``about`` (base z up); the default allows every direction.
     """
 
     n_particles: int = 2000
@@ -54,6 +57,7 @@ class CSOConfig:
     centre_radius: float = 0.5
     about: tuple[float, float, float] = (0.0, 0.0, 0.5)
     roll_range: float = math.pi
+    elevation_range: tuple[float, float] = (-math.pi / 2, math.pi / 2)
     inertia: float = 0.7
     cognitive: float = 1.5
     social: float = 1.5
@@ -74,6 +78,12 @@ class CSOConfig:
             raise CameraError("CSO needs n_particles >= 1, iterations >= 0, n_candidates >= 1")
         if self.width < 8:
             raise CameraError(f"CSO render width must be at least 8 px, got {self.width}")
+        lo, hi = self.elevation_range
+        if not -math.pi / 2 <= lo < hi <= math.pi / 2:
+            raise CameraError(
+                "CSO elevation_range must satisfy -pi/2 <= lo < hi <= pi/2 (radians), "
+                f"got {lo}, {hi}"
+            )
 
 
 @dataclass(frozen=True)
@@ -98,10 +108,24 @@ class CSOResult:
         return self.candidates[0]
 
 
-def _uniform_ball(n: int, r_min: float, r_max: float, g: torch.Generator) -> torch.Tensor:
-    """``n`` points ``[n, 3]`` uniform (by volume) in the shell ``r_min ≤ |p| ≤ r_max``."""
-    direction = torch.randn(n, 3, generator=g, dtype=torch.float64)
-    direction = direction / direction.norm(dim=1, keepdim=True).clamp_min(1e-12)
+def _uniform_ball(
+    n: int,
+    r_min: float,
+    r_max: float,
+    g: torch.Generator,
+    elevation: tuple[float, float] | None = None,
+) -> torch.Tensor:
+    """``n`` points ``[n, 3]`` uniform (by volume) in the shell ``r_min ≤ |p| ≤ r_max``, or in its
+    part whose elevation ``asin(p_z / |p|)`` lies in ``elevation`` (radians)."""
+    if elevation is None:
+        direction = torch.randn(n, 3, generator=g, dtype=torch.float64)
+        direction = direction / direction.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    else:  # uniform on the sphere's band: z uniform in [sin lo, sin hi] (Archimedes)
+        z_lo, z_hi = math.sin(elevation[0]), math.sin(elevation[1])
+        z = z_lo + (z_hi - z_lo) * torch.rand(n, generator=g, dtype=torch.float64)
+        phi = 2 * math.pi * torch.rand(n, generator=g, dtype=torch.float64)
+        rho = (1 - z * z).clamp_min(0).sqrt()
+        direction = torch.stack([rho * phi.cos(), rho * phi.sin(), z], dim=1)
     u = torch.rand(n, 1, generator=g, dtype=torch.float64)
     r = (r_min**3 + u * (r_max**3 - r_min**3)) ** (1.0 / 3.0)
     return direction * r
@@ -110,7 +134,9 @@ def _uniform_ball(n: int, r_min: float, r_max: float, g: torch.Generator) -> tor
 def sample_particles(n: int, cfg: CSOConfig, g: torch.Generator) -> torch.Tensor:
     """Initial particles ``[n, 7]`` (float64): eye in the shell, centre in the ball, roll."""
     about = torch.tensor(cfg.about, dtype=torch.float64)
-    eye = about + _uniform_ball(n, cfg.r_min, cfg.r_max, g)
+    full = tuple(cfg.elevation_range) == (-math.pi / 2, math.pi / 2)
+    band = None if full else cfg.elevation_range  # full sphere: the historical draws
+    eye = about + _uniform_ball(n, cfg.r_min, cfg.r_max, g, band)
     centre = (
         about + _uniform_ball(n, 0.0, cfg.centre_radius, g)
         if cfg.centre_radius > 0
@@ -121,11 +147,24 @@ def sample_particles(n: int, cfg: CSOConfig, g: torch.Generator) -> torch.Tensor
 
 
 def project_particles(x: torch.Tensor, cfg: CSOConfig) -> torch.Tensor:
-    """Particles ``[n, 7]`` moved back into the domain: eye radius clamped to ``[r_min, r_max]``,
-    centre radius to ``centre_radius``, roll to ``±roll_range``."""
+    """Particles ``[n, 7]`` moved back into the domain: eye radius clamped to ``[r_min, r_max]``
+    and its elevation to ``elevation_range`` (azimuth kept), centre radius to
+    ``centre_radius``, roll to ``±roll_range``."""
     about = torch.tensor(cfg.about, dtype=x.dtype)
     e = x[:, 0:3] - about
     r = e.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    lo, hi = cfg.elevation_range
+    elevation = torch.asin((e[:, 2:3] / r).clamp(-1.0, 1.0))
+    clamped = elevation.clamp(lo, hi)
+    horizontal = e[:, 0:2].norm(dim=1, keepdim=True)
+    azimuth = torch.where(horizontal > 1e-12, e[:, 0:2] / horizontal.clamp_min(1e-12),
+                          torch.tensor([1.0, 0.0], dtype=x.dtype))
+    moved = (clamped != elevation).squeeze(1)
+    e = torch.where(
+        moved[:, None],
+        torch.cat([azimuth * r * clamped.cos(), r * clamped.sin()], dim=1),
+        e,
+    )
     e = e * (r.clamp(cfg.r_min, cfg.r_max) / r)
     c = x[:, 3:6] - about
     rc = c.norm(dim=1, keepdim=True).clamp_min(1e-12)
