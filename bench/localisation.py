@@ -164,7 +164,8 @@ def simulate(folder: Path, n: int, frames: int, width: int, height: int) -> list
 
 
 def swarm_config(args: argparse.Namespace) -> CSOConfig:
-    """The swarm for a camera ~1.5 m from the robot, mounted upright (roll within ±0.6 rad)."""
+    """The swarm for a camera ~1.5 m from the robot, mounted upright (roll within ±0.6 rad) and
+    looking down at it (eyes 0-80° above the base's horizontal plane, as conf/register.yaml)."""
     return CSOConfig(
         n_particles=args.particles,
         iterations=args.swarm_iterations,
@@ -173,6 +174,7 @@ def swarm_config(args: argparse.Namespace) -> CSOConfig:
         r_max=2.5,
         centre_radius=0.3,
         roll_range=0.6,
+        elevation_range=(0.0, 1.4),
     )
 
 
