@@ -159,7 +159,7 @@ def project_particles(x: torch.Tensor, cfg: CSOConfig) -> torch.Tensor:
     horizontal = e[:, 0:2].norm(dim=1, keepdim=True)
     azimuth = torch.where(horizontal > 1e-12, e[:, 0:2] / horizontal.clamp_min(1e-12),
                           torch.tensor([1.0, 0.0], dtype=x.dtype))
-    moved = (clamped != elevation).squeeze(1)
+    moved = (clamped != elevation).squeeze(1)  # rebuilt only there: the rest keep exact values
     e = torch.where(
         moved[:, None],
         torch.cat([azimuth * r * clamped.cos(), r * clamped.sin()], dim=1),
