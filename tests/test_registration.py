@@ -368,6 +368,31 @@ def test_eye_elevation_band_is_sampled_uniformly_and_projected() -> None:
         CSOConfig(elevation_range=(1.0, 0.2))
 
 
+def test_swarm_candidates_come_from_different_basins() -> None:
+    """Multi-start candidates: the fittest particle, then the fittest one at least 0.3 m or 0.5 rad
+    from it (default separations), not its near neighbours (eyes 0.2 m to the side)."""
+    from roboseg.registration.cso import CSOConfig, _distinct_best, particles_to_T_cam_base
+    from roboseg.registration.pose import rotation_angle
+
+    centre = [0.0, 0.0, 0.5, 0.0]
+    x = torch.tensor(
+        [[1.5, 0.0, 1.0, *centre], [1.5, 0.2, 1.0, *centre], [1.5, -0.2, 1.0, *centre],
+         [-1.5, 0.0, 1.0, *centre]],
+        dtype=torch.float64,
+    )
+    fitness = torch.tensor([0.9, 0.89, 0.88, 0.5], dtype=torch.float64)
+    T = particles_to_T_cam_base(x)
+    # the neighbours look at the robot from 7° aside: distinct at 5 cm / 5° ...
+    assert math.radians(5.0) < float(rotation_angle(T[0, :3, :3], T[1, :3, :3])) < 0.5
+    picked = _distinct_best(x, fitness, CSOConfig(n_candidates=2))
+    assert [c.fitness for c in picked] == [0.9, 0.5]  # ... but one basin at 0.3 m / 0.5 rad
+    torch.testing.assert_close(torch.as_tensor(picked[1].particle), x[3])
+    close = _distinct_best(
+        x, fitness, CSOConfig(n_candidates=2, min_separation=0.05, min_separation_angle=0.087)
+    )
+    assert [c.fitness for c in close] == [0.9, 0.89]
+
+
 def test_cso_is_seeded_and_scores_initial_swarm(scene: dict) -> None:
     from roboseg.registration.cso import CSOConfig, cso
 
