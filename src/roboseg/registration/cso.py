@@ -46,12 +46,11 @@ class CSOConfig:
     (height follows each view's aspect ratio); ``chunk``: renders per rasteriser call;
     ``v_max``: largest step per iteration as a fraction of each coordinate's domain width;
     ``n_candidates`` distinct results whose poses differ by more than ``min_separation`` metres
-    or ``min_separation_angle`` radians: far enough apart to lie in different basins of SDR, so
-    that multi-start SDR can choose between them (candidates 5 cm / 5° apart all ended in one
-    basin, screened costs within 0.1 %, a wrong one on a noisy segmentation: 96° off where a
-    candidate 0.3 m / 0.5 rad away from the fittest led SDR to the truth's basin, 4.3° off).
-    ``elevation_range``: the eye's elevation (radians) above
-    the horizontal plane through ``about`` (base z up); the default allows every direction.
+    or ``min_separation_angle`` radians, far enough apart to start SDR in different basins
+    (measured on a noisy segmentation: 4 candidates 5 cm / 5° apart screened within 0.1 % of each
+    other and ended 96° off; 0.3 m / 0.5 rad apart, one of them led SDR to the truth, 4.3° off).
+    ``elevation_range``: the eye's elevation (radians) above the horizontal plane through
+    ``about`` (base z up); the default allows every direction.
     """
 
     n_particles: int = 2000
