@@ -17,6 +17,9 @@ iterations on a 90 %-decimated mesh, the best refined on the full mesh), with bo
 (``--no-offset`` to compare without). Separately, the swarm initialisation is checked on
 ``--placements`` random camera placements (synthetic renders), and one full registration
 (swarm + SDR [+ prior], 9 configurations) is timed. Box plots go to ``--out``/localisation.png.
+Camera poses × mask conditions and the placements run on ``--jobs`` processes (default: one per
+core); each seeds its own draws, so the figures do not depend on ``--jobs``. The timed
+registration runs alone, after them.
 
     python bench/localisation.py --quick            # smoke run at 320 px, ~15 min on 2 cores
     python bench/localisation.py --model4 outputs/default/model.onnx   # full protocol, hours
@@ -25,11 +28,16 @@ iterations on a 90 %-decimated mesh, the best refined on the full mesh), with bo
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 import math
+import multiprocessing
+import os
 import sys
 import tempfile
 import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -42,6 +50,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.common import format_table, verdict  # noqa: E402
 from roboseg.camera import Intrinsics, StereoRig, look_at  # noqa: E402
+from roboseg.evaluation.metrics import binary_iou  # noqa: E402
 from roboseg.recording import RecordingReader  # noqa: E402
 from roboseg.registration.cso import CSOConfig, cso  # noqa: E402
 from roboseg.registration.register import RegisterConfig, register  # noqa: E402
@@ -53,31 +62,17 @@ from roboseg.registration.views import (  # noqa: E402
     views_for_width,
 )
 from roboseg.render.raster import render_hard  # noqa: E402
+from roboseg.reproduce_report import frame_errors_mm  # noqa: E402
 from roboseg.robot import RobotModel, load_robot  # noqa: E402
 
 log = logging.getLogger("bench.localisation")
 LEFT = "camera_left_optical_frame"
 SIZES = (3, 6, 9, 12)
+GT, DEGRADED = "(a) gt masks", "(b) degraded"
 
 
 # --------------------------------------------------------------------------------------------
 # maths
-
-
-def frame_errors_mm(
-    robot: RobotModel, q: np.ndarray, T_est: np.ndarray, T_true: np.ndarray
-) -> np.ndarray:
-    """``[N, F]`` distances (mm) between every frame origin of ``robot`` at joints ``q`` [N, D]
-    mapped into the camera by ``T_est`` and by ``T_true`` (both base → left optical)."""
-    T_bf = robot.frame_transforms(torch.as_tensor(q, dtype=torch.float64).to(robot.dtype))
-    p = T_bf[..., :3, 3].double().numpy()  # [N, F, 3] base frame
-    d = p @ (T_est[:3, :3] - T_true[:3, :3]).T + (T_est[:3, 3] - T_true[:3, 3])
-    return 1000.0 * np.linalg.norm(d, axis=-1)
-
-
-def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
-    union = np.count_nonzero(a | b)
-    return 1.0 if union == 0 else np.count_nonzero(a & b) / union
 
 
 def degrade(mask: np.ndarray, strength: float, rng: np.random.Generator) -> np.ndarray:
@@ -107,7 +102,7 @@ def degrade_to_iou(
     for _ in range(10):
         mid = 0.5 * (lo + hi)
         out = degrade(mask, mid, np.random.default_rng(seed))
-        value = mask_iou(out, mask)
+        value = binary_iou(out, mask)
         if abs(value - target) < abs(best[1] - target):
             best = (out, value)
         lo, hi = (mid, hi) if value > target else (lo, mid)
@@ -145,18 +140,40 @@ def load_pose(path: Path, robot: RobotModel) -> dict[str, Any]:
     }
 
 
-def simulate(folder: Path, n: int, frames: int, width: int, height: int) -> list[Path]:
+def simulate(folder: Path, index: int, frames: int, width: int, height: int) -> Path:
+    """Camera pose ``index``: a stereo recording ~1.5 m from the robot, seeded by ``index``."""
     from roboseg.sim import SimConfig, simulate_recording
 
-    paths = []
-    for i in range(n):
-        path = folder / f"pose_{i:02d}.mcap"
-        cfg = SimConfig(
-            frames=frames, seed=100 + i, width=width, height=height, distance=(1.4, 1.6)
-        )
-        simulate_recording(cfg, path)
-        paths.append(path)
-    return paths
+    path = folder / f"pose_{index:02d}.mcap"
+    cfg = SimConfig(
+        frames=frames, seed=100 + index, width=width, height=height, distance=(1.4, 1.6)
+    )
+    simulate_recording(cfg, path)
+    return path
+
+
+@functools.lru_cache(maxsize=1)
+def robots() -> tuple[RobotModel, RobotModel, RobotModel]:
+    """The default robot, its 98 %-decimated swarm mesh and 90 %-decimated screening mesh
+    (loaded once per process)."""
+    robot = load_robot(None)
+    return robot, robot.decimated(0.98), robot.decimated(0.9)
+
+
+def _init_worker() -> None:
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    torch.set_num_threads(1)
+
+
+def run_tasks(tasks: list[tuple[Callable[..., Any], tuple]], jobs: int) -> list[Any]:
+    """``fn(*args)`` of every task, in order; on ``jobs`` worker processes when ``jobs > 1``.
+    Every task seeds its own random draws, so the results do not depend on ``jobs``."""
+    if jobs <= 1:
+        return [fn(*a) for fn, a in tasks]
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_init_worker) as pool:
+        futures = [pool.submit(fn, *a) for fn, a in tasks]
+        return [f.result() for f in futures]
 
 
 # --------------------------------------------------------------------------------------------
@@ -247,6 +264,26 @@ def cross_validate(
     return out
 
 
+def mask_case(
+    path: Path, index: int, case: str, args: argparse.Namespace
+) -> tuple[dict[int, list[np.ndarray]], list[float]]:
+    """Cross-validation of camera pose ``index`` under mask condition ``case`` (:data:`GT` or
+    :data:`DEGRADED`), and the IoUs the degraded masks achieved. Both conditions draw the same
+    subsets (seeded by ``index``), so (a) and (b) compare like with like."""
+    robot, coarse, mid = robots()
+    pose = load_pose(path, robot)
+    masks, achieved = pose["masks"], []
+    if case == DEGRADED:
+        rng = np.random.default_rng([1, index])
+        masks = []
+        for m in pose["masks"]:
+            pairs = [degrade_to_iou(x, 0.73, rng) for x in m]
+            masks.append(np.stack([d for d, _ in pairs]))
+            achieved += [v for _, v in pairs]
+    subsets = np.random.default_rng([0, index])
+    return cross_validate(pose, masks, robot, coarse, mid, args, subsets), achieved
+
+
 def summarise(name: str, errors: dict[int, list[np.ndarray]], frame_names: list[str]) -> list[list]:
     """Table rows: case, k, subsets, tool-centre median/Q1/Q3 (mm), per-frame medians (mm)."""
     rows = []
@@ -263,56 +300,50 @@ def summarise(name: str, errors: dict[int, list[np.ndarray]], frame_names: list[
 # swarm basin on synthetic renders
 
 
-def basin_check(
-    robot: RobotModel, coarse: RobotModel, mid: RobotModel, args: argparse.Namespace
-) -> list[bool]:
-    """For random camera placements ~1.5 m away (6 configurations, ground-truth renders): the
+def basin_placement(p: int, args: argparse.Namespace) -> bool:
+    """Random camera placement ``p`` ~1.5 m away (6 configurations, ground-truth renders): the
     swarm's start is inside the refinement basin when SDR from it (multi-start over the swarm's
     candidates, as in :func:`localise`) ends where SDR started from the truth ends: within 2 mm
     and 0.2° of that optimum. Comparing with the truth-started optimum, not with the truth, keeps
     the check about initialisation rather than about the objective's resolution."""
-    rng = np.random.default_rng(7)
+    robot, coarse, mid = robots()
+    rng = np.random.default_rng([7, p])
     rig = StereoRig.zed2i_like(args.sim_width, args.sim_height)
     views = stereo_views(rig)
-    ok = []
-    for p in range(args.placements):
-        q = robot.random_joints(6, torch.Generator().manual_seed(p))
-        az, el = rng.uniform(-math.pi, math.pi), rng.uniform(math.radians(15), math.radians(55))
-        target = np.array([0.1, 0.0, 0.45]) + rng.normal(0, 0.08, 3)
-        eye = target + 1.5 * np.array(
-            [math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), math.sin(el)]
-        )
-        T_true = torch.as_tensor(np.asarray(look_at(eye, target)), dtype=torch.float32)
-        verts = robot.posed_vertices(q)
-        masks = [
-            render_hard(vertices_in_view(T_true, v, verts), robot.faces, v.K, v.height, v.width)
-            for v in views
-        ]
-        masks_np = [m.numpy() for m in masks]
-        cfg = replace(swarm_config(args), seed=p)
-        roi, roi_masks = crop_to_masks(views, masks_np)
-        found = cso(
-            coarse.posed_vertices(q[:4]), coarse.faces, roi, [m[:4] for m in roi_masks], cfg
-        )
-        starts = [c.T_cam_base for c in found.candidates]
-        qn = q.double().numpy()
-        T_swarm = localise(qn, views, masks_np, starts, robot, mid, args)
-        T_ref = localise(qn, views, masks_np, [T_true.double().numpy()], robot, mid, args)
-        dt = 1000 * float(np.linalg.norm(T_swarm[:3, 3] - T_ref[:3, 3]))
-        R = T_swarm[:3, :3].T @ T_ref[:3, :3]
-        dr = math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(R) - 1) / 2))))
-        truth = np.median(frame_errors_mm(robot, qn, T_swarm, T_true.double().numpy())[:, -1])
-        ok.append(dt < 2.0 and dr < 0.2)
-        log.info(
-            "placement %d: CSO IoU %.3f; from swarm vs from truth %.2f mm %.3f°; "
-            "tool-centre error %.2f mm",
-            p,
-            found.best.fitness,
-            dt,
-            dr,
-            truth,
-        )
-    return ok
+    q = robot.random_joints(6, torch.Generator().manual_seed(p))
+    az, el = rng.uniform(-math.pi, math.pi), rng.uniform(math.radians(15), math.radians(55))
+    target = np.array([0.1, 0.0, 0.45]) + rng.normal(0, 0.08, 3)
+    eye = target + 1.5 * np.array(
+        [math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), math.sin(el)]
+    )
+    T_true = torch.as_tensor(np.asarray(look_at(eye, target)), dtype=torch.float32)
+    verts = robot.posed_vertices(q)
+    masks = [
+        render_hard(vertices_in_view(T_true, v, verts), robot.faces, v.K, v.height, v.width)
+        for v in views
+    ]
+    masks_np = [m.numpy() for m in masks]
+    cfg = replace(swarm_config(args), seed=p)
+    roi, roi_masks = crop_to_masks(views, masks_np)
+    found = cso(coarse.posed_vertices(q[:4]), coarse.faces, roi, [m[:4] for m in roi_masks], cfg)
+    starts = [c.T_cam_base for c in found.candidates]
+    qn = q.double().numpy()
+    T_swarm = localise(qn, views, masks_np, starts, robot, mid, args)
+    T_ref = localise(qn, views, masks_np, [T_true.double().numpy()], robot, mid, args)
+    dt = 1000 * float(np.linalg.norm(T_swarm[:3, 3] - T_ref[:3, 3]))
+    R = T_swarm[:3, :3].T @ T_ref[:3, :3]
+    dr = math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(R) - 1) / 2))))
+    truth = np.median(frame_errors_mm(robot, qn, T_swarm, T_true.double().numpy())[:, -1])
+    log.info(
+        "placement %d: CSO IoU %.3f; from swarm vs from truth %.2f mm %.3f°; "
+        "tool-centre error %.2f mm",
+        p,
+        found.best.fitness,
+        dt,
+        dr,
+        truth,
+    )
+    return dt < 2.0 and dr < 0.2
 
 
 # --------------------------------------------------------------------------------------------
@@ -378,6 +409,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--screen", type=int, default=40, help="multi-start screening iterations")
     p.add_argument("--no-offset", action="store_true", help="SDR without boundary offsets")
     p.add_argument("--skip-timing", action="store_true")
+    p.add_argument(
+        "--jobs",
+        type=int,
+        default=os.cpu_count() or 1,
+        help="worker processes for the cross-validation and the placements (one thread each)",
+    )
     p.add_argument("--out", type=Path, default=Path("outputs/bench_localisation"))
     return p
 
@@ -402,25 +439,28 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torch.set_num_threads(1)
     args.out.mkdir(parents=True, exist_ok=True)
-    robot = load_robot(None)
-    coarse, mid = robot.decimated(0.98), robot.decimated(0.9)
-    rng = np.random.default_rng(0)
+    robot = robots()[0]
     lines: list[str] = []
     t_start = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
-        paths = simulate(Path(tmp), args.poses, args.frames, args.sim_width, args.sim_height)
+        sims = [
+            (simulate, (Path(tmp), i, args.frames, args.sim_width, args.sim_height))
+            for i in range(args.poses)
+        ]
+        paths = run_tasks(sims, args.jobs)
         poses = [load_pose(p, robot) for p in paths]
-        results: dict[str, dict[int, list[np.ndarray]]] = {"(a) gt masks": {}, "(b) degraded": {}}
-        achieved = []
-        for pose in poses:
-            degraded = []
-            for m in pose["masks"]:
-                pairs = [degrade_to_iou(x, 0.73, rng) for x in m]
-                degraded.append(np.stack([d for d, _ in pairs]))
-                achieved += [v for _, v in pairs]
-            for name, masks in (("(a) gt masks", pose["masks"]), ("(b) degraded", degraded)):
-                for k, errs in cross_validate(pose, masks, robot, coarse, mid, args, rng).items():
-                    results[name].setdefault(k, []).extend(errs)
+        # one task per (camera pose, mask condition), then one per swarm placement
+        cases = [(i, case) for i in range(args.poses) for case in (GT, DEGRADED)]
+        tasks = [(mask_case, (paths[i], i, case, args)) for i, case in cases]
+        tasks += [(basin_placement, (p, args)) for p in range(args.placements)]
+        done = run_tasks(tasks, args.jobs)
+        results: dict[str, dict[int, list[np.ndarray]]] = {GT: {}, DEGRADED: {}}
+        achieved: list[float] = []
+        for (_, case), (errors, ious) in zip(cases, done[: len(cases)], strict=True):
+            for k, errs in errors.items():
+                results[case].setdefault(k, []).extend(errs)
+            achieved += ious
+        basin = done[len(cases) :]
         model_results = model_condition(poses, robot, args)
         results.update(model_results)
         rows = []
@@ -438,17 +478,16 @@ def main(argv: list[str] | None = None) -> int:
         )
         plot(results, robot.frame_names, args.out / "localisation.png")
         print(f"plot: {args.out / 'localisation.png'}")
-        twelve = results["(a) gt masks"].get(max(args.sizes))
+        twelve = results[GT].get(max(args.sizes))
         if twelve:
             med = float(np.median(np.concatenate(twelve)[:, -1]))
             what = f"{max(args.sizes)} configs, {args.sim_width} px images, SDR at {args.width} px"
             lines.append(verdict(f"(a) median tool-centre error, {what}", med, 1.0, "mm"))
-        if args.placements > 0:
-            ok = basin_check(robot, coarse, mid, args)
-            share = 100.0 * sum(ok) / len(ok)
+        if basin:
+            share = 100.0 * sum(basin) / len(basin)
             status = "PASS" if share >= 95 else "FAIL"
             lines.append(
-                f"{status}  swarm inside refinement basin: {sum(ok)}/{len(ok)} placements = "
+                f"{status}  swarm inside refinement basin: {sum(basin)}/{len(basin)} placements = "
                 f"{share:.0f} % (target >= 95 %)"
             )
         if not args.skip_timing:

@@ -1,0 +1,47 @@
+"""The localisation bench's own machinery: mask degradation and its worker pool."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from bench.localisation import degrade_to_iou, run_tasks
+from roboseg.evaluation.metrics import binary_iou
+
+
+def _disc(radius: int) -> np.ndarray:
+    mask = np.zeros((180, 320), np.uint8)
+    cv2.circle(mask, (160, 90), radius, 1, -1)
+    return mask > 0
+
+
+def test_degraded_masks_reach_the_target_iou_and_report_it() -> None:
+    rng = np.random.default_rng(0)
+    mask = _disc(50)
+    out, iou = degrade_to_iou(mask, 0.73, rng)
+    assert iou == binary_iou(out, mask)
+    assert abs(iou - 0.73) < 0.03
+    assert not np.array_equal(out, mask)
+    empty = np.zeros_like(mask)
+    same, one = degrade_to_iou(empty, 0.73, rng)
+    assert one == 1.0 and not same.any()
+
+
+def test_degradation_is_seeded() -> None:
+    mask = _disc(40)
+    a, _ = degrade_to_iou(mask, 0.73, np.random.default_rng(3))
+    b, _ = degrade_to_iou(mask, 0.73, np.random.default_rng(3))
+    assert np.array_equal(a, b)
+
+
+def test_worker_pool_returns_results_in_task_order() -> None:
+    # IoU of the diagonal against the diagonal with its first k rows filled: 4 / (4 + 3k)
+    eye = np.eye(4, dtype=bool)
+    tasks = []
+    for k in range(4):
+        filled = eye.copy()
+        filled[:k] = True
+        tasks.append((binary_iou, (eye, filled)))
+    expected = [1.0, 4 / 7, 4 / 10, 4 / 13]
+    assert run_tasks(tasks, 1) == expected
+    assert run_tasks(tasks, 2) == expected
