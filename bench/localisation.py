@@ -22,7 +22,8 @@ core); each seeds its own draws, so the figures do not depend on ``--jobs``. The
 registration runs alone, after them.
 
     python bench/localisation.py --quick            # smoke run at 320 px, ~15 min on 2 cores
-    python bench/localisation.py --model4 outputs/default/model.onnx   # full protocol, hours
+    python bench/localisation.py --skip-timing      # full protocol without (c): ~2 h on 2 cores
+    python bench/localisation.py --model4 outputs/default/model.onnx   # with (c): longer
 """
 
 from __future__ import annotations
