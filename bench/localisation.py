@@ -449,7 +449,6 @@ def main(argv: list[str] | None = None) -> int:
             for i in range(args.poses)
         ]
         paths = run_tasks(sims, args.jobs)
-        poses = [load_pose(p, robot) for p in paths]
         # one task per (camera pose, mask condition), then one per swarm placement
         cases = [(i, case) for i in range(args.poses) for case in (GT, DEGRADED)]
         tasks = [(mask_case, (paths[i], i, case, args)) for i, case in cases]
@@ -462,7 +461,7 @@ def main(argv: list[str] | None = None) -> int:
                 results[case].setdefault(k, []).extend(errs)
             achieved += ious
         basin = done[len(cases) :]
-        model_results = model_condition(poses, robot, args)
+        model_results = model_condition(paths, robot, args)
         results.update(model_results)
         rows = []
         for name, errors in results.items():
@@ -492,7 +491,7 @@ def main(argv: list[str] | None = None) -> int:
                 f"{share:.0f} % (target >= 95 %)"
             )
         if not args.skip_timing:
-            seconds, what = time_full_registration(poses[0]["path"], robot, args)
+            seconds, what = time_full_registration(paths[0], robot, args)
             lines.append(verdict(f"whole registration ({what}, 9 configs)", seconds, 300.0, "s"))
     print("\n".join(lines))
     print(f"bench wall time {time.perf_counter() - t_start:.0f} s")
@@ -505,7 +504,7 @@ def _models(args: argparse.Namespace) -> list[tuple[str, Path]]:
 
 
 def model_condition(
-    poses: list[dict[str, Any]], robot: RobotModel, args: argparse.Namespace
+    paths: list[Path], robot: RobotModel, args: argparse.Namespace
 ) -> dict[str, dict[int, list[np.ndarray]]]:
     """(c) trained models on draped frames: SDR (3- or 4-channel model, zero prior) and SDR with
     prior (4-channel model); per size one spread selection of draped frames per camera pose
@@ -516,6 +515,7 @@ def model_condition(
         return {}
     from roboseg.segmentor import OnnxSegmentor
 
+    poses = [load_pose(p, robot) for p in paths]
     out: dict[str, dict[int, list[np.ndarray]]] = {}
     for tag, path in models:
         if not path.is_file():
