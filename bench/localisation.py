@@ -193,6 +193,7 @@ def swarm_config(args: argparse.Namespace) -> CSOConfig:
         centre_radius=0.3,
         roll_range=0.6,
         elevation_range=(0.0, 1.4),
+        restarts=args.restarts,
     )
 
 
@@ -406,6 +407,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--width", type=int, default=512, help="SDR render width (px)")
     p.add_argument("--particles", type=int, default=1000)
     p.add_argument("--swarm-iterations", type=int, default=20)
+    p.add_argument(
+        "--restarts", type=int, default=2, help="further swarms while the best IoU is below 0.9"
+    )
     p.add_argument("--iterations", type=int, default=250)
     p.add_argument("--screen", type=int, default=40, help="multi-start screening iterations")
     p.add_argument("--no-offset", action="store_true", help="SDR without boundary offsets")

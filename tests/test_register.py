@@ -331,6 +331,7 @@ def test_pose_yaml_contents(registered, recording: dict, tmp_path: Path) -> None
     names = recording["robot"].joint_names
     assert list(loaded["configurations"][0]["joints"]) == names
     assert loaded["masks_contain_robots"] == ["robot_0"]
+    assert loaded["cso_runs"] == registered.cso_runs >= 1
 
 
 def test_registered_recording_carries_the_estimate(registered, recording, tmp_path) -> None:

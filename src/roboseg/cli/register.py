@@ -67,6 +67,7 @@ def pose_document(reg: Registration, recording: str, model: str | None) -> dict[
         "per_frame_iou": [[round(float(x), 4) for x in row] for row in r.per_frame_iou],
         "segmentation_refreshes": None if reg.prior is None else reg.prior.refreshes,
         "cso_fitness": round(float(reg.cso_fitness), 4),
+        "cso_runs": int(reg.cso_runs),
         "recording": recording,
         "model": model,
         "configurations": [

@@ -15,6 +15,12 @@ joint configurations (the paper's sum, divided by the number of terms). Standard
 ``v ← w v + c1 r1 (p_best − x) + c2 r2 (g_best − x)``, ``x ← project(x + v)``, where ``project``
 keeps every particle inside its initial domain. The initial swarm is scored before the first
 velocity update. The best few mutually distinct personal bests are returned for multi-start SDR.
+
+A swarm can settle in a wrong basin whose fitness stays well below the truth's (measured at
+1.5 m with ground-truth masks: 0.83 against the truth's 0.97; other seeds of the same swarm
+reached 0.97). ``restarts`` further independent swarms (run ``r`` seeded ``seed + r``) run
+while the best fitness so far is below ``restart_below``; the candidates are picked from the
+personal bests of every run.
 """
 
 from __future__ import annotations
@@ -50,7 +56,10 @@ class CSOConfig:
     (measured on a noisy segmentation: 4 candidates 5 cm / 5° apart screened within 0.1 % of each
     other and ended 96° off; 0.3 m / 0.5 rad apart, one of them led SDR to the truth, 4.3° off).
     ``elevation_range``: the eye's elevation (radians) above the horizontal plane through
-    ``about`` (base z up); the default allows every direction.
+    ``about`` (base z up); the default allows every direction. ``restarts``: at most this many
+    further swarms (seeds ``seed + 1``, ``seed + 2``, …) run while the best fitness is below
+    ``restart_below`` (mean IoU; a clean mask of the true pose scores ~0.95 at 48 px, so the
+    restarts cost time only on poor fits and on poor masks).
     """
 
     n_particles: int = 2000
@@ -71,6 +80,8 @@ class CSOConfig:
     min_separation: float = 0.3
     min_separation_angle: float = 0.5
     seed: int = 0
+    restarts: int = 0
+    restart_below: float = 0.9
 
     def __post_init__(self) -> None:
         if not 0.0 < self.r_min < self.r_max:
@@ -79,6 +90,8 @@ class CSOConfig:
             raise CameraError("CSO centre_radius and roll_range must be non-negative")
         if self.n_particles < 1 or self.iterations < 0 or self.n_candidates < 1:
             raise CameraError("CSO needs n_particles >= 1, iterations >= 0, n_candidates >= 1")
+        if self.restarts < 0:
+            raise CameraError(f"CSO restarts must be >= 0, got {self.restarts}")
         if self.width < 8:
             raise CameraError(f"CSO render width must be at least 8 px, got {self.width}")
         lo, hi = self.elevation_range
@@ -100,11 +113,13 @@ class Candidate:
 
 @dataclass(frozen=True)
 class CSOResult:
-    """Best distinct candidates (best first) and the global best fitness after each iteration
-    (``history[0]`` is the scored initial swarm)."""
+    """Best distinct candidates (best first), the global best fitness after each iteration
+    (``history[0]`` is the scored initial swarm; with restarts, each run's iterations follow the
+    previous run's, still the best over all runs so far) and the number of swarms run."""
 
     candidates: list[Candidate]
     history: list[float] = field(default_factory=list)
+    runs: int = 1
 
     @property
     def best(self) -> Candidate:
@@ -262,22 +277,12 @@ def _distinct_best(x: torch.Tensor, fitness: torch.Tensor, cfg: CSOConfig) -> li
     ]
 
 
-def cso(
-    vertices_base: torch.Tensor,
-    faces: torch.Tensor,
-    views: Sequence[View],
-    masks: Sequence[np.ndarray | torch.Tensor],
-    config: CSOConfig | None = None,
-) -> CSOResult:
-    """Search ``T_cam_base`` of the left camera by camera swarm optimisation.
-
-    ``vertices_base`` [C, V, 3] are the robot's vertices in its C configurations (base frame,
-    metres; decimate the mesh first, e.g. ``robot.decimated(0.95)``), ``masks[i]`` [C, H, W] the
-    segmentations seen by ``views[i]``. Deterministic for a given ``config.seed``.
-    """
-    cfg = config or CSOConfig()
-    g = torch.Generator().manual_seed(cfg.seed)
-    fit = SwarmFitness(vertices_base, faces, views, masks, cfg.width, cfg.chunk)
+def _swarm(
+    fit: SwarmFitness, cfg: CSOConfig, seed: int
+) -> tuple[torch.Tensor, torch.Tensor, list[float]]:
+    """One particle swarm: personal bests ``[n, 7]``, their fitness ``[n]`` and the run's global
+    best after each iteration (the initial swarm first)."""
+    g = torch.Generator().manual_seed(seed)
     x = sample_particles(cfg.n_particles, cfg, g)
     v = torch.zeros_like(x)
     span = torch.tensor(
@@ -289,7 +294,7 @@ def cso(
     p_best, p_fit = x.clone(), f.clone()
     g_idx = int(torch.argmax(p_fit))
     history = [float(p_fit[g_idx])]
-    log.info("CSO: %d particles, initial best IoU %.3f", cfg.n_particles, history[0])
+    log.info("CSO seed %d: %d particles, initial best IoU %.3f", seed, cfg.n_particles, history[0])
     for it in range(1, cfg.iterations + 1):
         r1 = torch.rand(x.shape, generator=g, dtype=torch.float64)
         r2 = torch.rand(x.shape, generator=g, dtype=torch.float64)
@@ -305,6 +310,48 @@ def cso(
         g_idx = int(torch.argmax(p_fit))
         history.append(float(p_fit[g_idx]))
         log.debug("CSO %d: best IoU %.4f, mean %.4f", it, history[-1], float(f.mean()))
-    candidates = _distinct_best(p_best, p_fit, cfg)
-    log.info("CSO done: best IoU %.3f (%d candidates)", candidates[0].fitness, len(candidates))
-    return CSOResult(candidates, history)
+    return p_best, p_fit, history
+
+
+def cso(
+    vertices_base: torch.Tensor,
+    faces: torch.Tensor,
+    views: Sequence[View],
+    masks: Sequence[np.ndarray | torch.Tensor],
+    config: CSOConfig | None = None,
+) -> CSOResult:
+    """Search ``T_cam_base`` of the left camera by camera swarm optimisation.
+
+    ``vertices_base`` [C, V, 3] are the robot's vertices in its C configurations (base frame,
+    metres; decimate the mesh first, e.g. ``robot.decimated(0.95)``), ``masks[i]`` [C, H, W] the
+    segmentations seen by ``views[i]``. Deterministic for a given ``config.seed``.
+    """
+    cfg = config or CSOConfig()
+    fit = SwarmFitness(vertices_base, faces, views, masks, cfg.width, cfg.chunk)
+    bests: list[torch.Tensor] = []
+    fits: list[torch.Tensor] = []
+    history: list[float] = []
+    for run in range(cfg.restarts + 1):
+        if run and history[-1] >= cfg.restart_below:
+            break
+        if run:
+            log.info(
+                "CSO best IoU %.3f < %.3f: restarting with seed %d",
+                history[-1],
+                cfg.restart_below,
+                cfg.seed + run,
+            )
+        p_best, p_fit, run_history = _swarm(fit, cfg, cfg.seed + run)
+        bests.append(p_best)
+        fits.append(p_fit)
+        floor = history[-1] if history else -math.inf
+        history.extend(max(floor, h) for h in run_history)
+    candidates = _distinct_best(torch.cat(bests), torch.cat(fits), cfg)
+    log.info(
+        "CSO done: best IoU %.3f (%d candidates, %d run%s)",
+        candidates[0].fitness,
+        len(candidates),
+        len(bests),
+        "" if len(bests) == 1 else "s",
+    )
+    return CSOResult(candidates, history, runs=len(bests))

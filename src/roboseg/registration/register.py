@@ -95,7 +95,7 @@ class RegisterConfig:
     min_iou: float = 0.5
     other_robots_margin: float = 0.05
     cso: CSOConfig = field(
-        default_factory=lambda: CSOConfig(n_particles=1000, iterations=20, width=48)
+        default_factory=lambda: CSOConfig(n_particles=1000, iterations=20, width=48, restarts=2)
     )
     sdr: SDRConfig = field(
         default_factory=lambda: SDRConfig(max_iterations=200, boundary_offset=4.0)
@@ -132,7 +132,8 @@ class Registration:
     ``T_cam_base`` [4, 4]: base frame → left optical frame (metres) of the final method;
     ``result`` that method's :class:`RegistrationResult`; ``sdr`` the plain SDR result;
     ``prior`` the SDR-with-prior result (None for method ``sdr``); ``dropped`` one line per frame
-    or problem left out; ``images``/``masks`` per view ``[C, H, W(, 3)]`` of the used frames.
+    or problem left out; ``images``/``masks`` per view ``[C, H, W(, 3)]`` of the used frames;
+    ``cso_fitness`` the swarm's best mean IoU and ``cso_runs`` how many swarms it took.
     """
 
     T_cam_base: np.ndarray
@@ -152,6 +153,7 @@ class Registration:
     images: list[np.ndarray]
     masks: list[np.ndarray]
     cso_fitness: float
+    cso_runs: int
     seconds: dict[str, float]
 
     @property
@@ -619,6 +621,7 @@ def register(
         images=images,
         masks=mask_stacks,
         cso_fitness=found_cso.best.fitness,
+        cso_runs=found_cso.runs,
         seconds=seconds,
     )
 
