@@ -11,7 +11,8 @@ errors (origin of every frame L0…EE transformed by the estimate vs the truth),
 Mask conditions: (a) ground-truth masks, (b) masks degraded to IoU ≈ 0.73 (erode/dilate + blobs,
 achieved IoU printed), (c) ``--model3``/``--model4`` ONNX models on draped frames: SDR, and SDR
 with prior for a 4-channel model (skipped, and said so, when no model is given).
-The swarm runs once per camera pose (on 4 configurations of the first subset of the largest size);
+The swarm runs once per camera pose (on 4 configurations of the first subset of the largest size;
+up to ``--restarts`` further swarms with new seeds while its best IoU stays below 0.9);
 each subset is then localised by multi-start SDR from its candidates (screened for ``--screen``
 iterations on a 90 %-decimated mesh, the best refined on the full mesh), with boundary offsets
 (``--no-offset`` to compare without). Separately, the swarm initialisation is checked on
