@@ -409,7 +409,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--particles", type=int, default=1000)
     p.add_argument("--swarm-iterations", type=int, default=20)
     p.add_argument(
-        "--restarts", type=int, default=2, help="further swarms while the best IoU is below 0.9"
+        "--restarts",
+        type=int,
+        default=2,
+        help=f"further swarms while the best IoU is below {CSOConfig.restart_below}",
     )
     p.add_argument("--iterations", type=int, default=250)
     p.add_argument("--screen", type=int, default=40, help="multi-start screening iterations")

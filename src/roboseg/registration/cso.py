@@ -332,9 +332,9 @@ def cso(
     fits: list[torch.Tensor] = []
     history: list[float] = []
     for run in range(cfg.restarts + 1):
-        if run and history[-1] >= cfg.restart_below:
-            break
         if run:
+            if history[-1] >= cfg.restart_below:
+                break
             log.info(
                 "CSO best IoU %.3f < %.3f: restarting with seed %d",
                 history[-1],
