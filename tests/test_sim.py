@@ -16,7 +16,7 @@ from hydra import compose, initialize_config_dir
 
 from roboseg.cli.simulate import run
 from roboseg.config import CONF_DIR
-from roboseg.errors import RobotModelError
+from roboseg.errors import RobosegError, RobotModelError
 from roboseg.recording.reader import RecordingReader
 from roboseg.render.raster import rasterize, render_hard
 from roboseg.robot import load_robot
@@ -47,6 +47,7 @@ from roboseg.sim.simulate import (
     front_faces,
     is_closed,
     protocol_trajectory,
+    site_draws,
     undraped_count,
     yaw_transform,
 )
@@ -568,3 +569,29 @@ def test_trivial_baseline_of_the_difficulty_bench():
     draped[masks] = (60, 90, 190)
     value, sat = bench.value_saturation(draped)
     assert bench.iou(bench.threshold_baseline(value, sat, v, s), masks) == 0.0
+
+
+def test_sessions_of_a_site_share_room_side_and_drape_kind(tmp_path):
+    """A site fixes the drape kind and the side of the table the camera stands on; sessions
+    (seeds) place the camera within ``site_azimuth_deg`` of that side."""
+    draws = site_draws(4)
+    kinds, azimuths = set(), []
+    for seed in range(3):
+        path = tmp_path / f"s{seed}.mcap"
+        cfg = SimConfig(frames=1, seed=seed, site=4, site_azimuth_deg=20.0, distance=(2.0, 2.5),
+                        **TINY)
+        summary = simulate_recording(cfg, path)
+        kinds.add(tuple(summary.drape_kinds))
+        with RecordingReader(path, mask_topics=MASKS) as reader:
+            assert reader.metadata()[SIM_METADATA]["site"] == "4"
+            T = next(T for (p, c), T in reader.tf_static().items() if c.startswith("robot_0/"))
+        eye = np.linalg.inv(T)[:3, 3]  # camera centre in the base frame of robot 0
+        azimuths.append(math.atan2(eye[1] - 0.0, eye[0] - 0.1))
+    assert len(kinds) == 1
+    for az in azimuths:  # target jitter of a few cm moves the azimuth by a few degrees
+        off = math.degrees(math.remainder(az - draws.azimuth, 2 * math.pi))
+        assert abs(off) <= 20.0 + 8.0
+    assert len({round(a, 3) for a in azimuths}) == 3  # placements differ
+    assert site_draws(4).azimuth == draws.azimuth != site_draws(5).azimuth
+    with pytest.raises(RobosegError, match="site_azimuth_deg"):
+        SimConfig(site=1, site_azimuth_deg=200.0).validate()

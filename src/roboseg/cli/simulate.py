@@ -58,6 +58,8 @@ def sim_config(cfg: DictConfig) -> SimConfig:
         distance=(lo, hi),
         jpeg_quality=_number(cfg, "render.jpeg_quality", int),
         workers=_number(cfg, "workers", int),
+        site=None if OmegaConf.select(cfg, "site") is None else _number(cfg, "site", int),
+        site_azimuth_deg=float(OmegaConf.select(cfg, "site_azimuth_deg", default=60.0)),
     )
 
 

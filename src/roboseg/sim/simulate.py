@@ -77,6 +77,13 @@ class SimConfig:
     distance: tuple[float, float] = (1.0, 2.5)
     jpeg_quality: int = 90
     workers: int = 1  # processes rendering frames (<= 1: in the calling process)
+    #: None: every recording is its own random room (domain randomisation). An int: the
+    #: recording is one session of that site (see :func:`site_draws`): the room, the drape kind
+    #: and the side of the table the camera stands on come from ``site``; the camera placement,
+    #: the drape's folds, people, tools, light and motion come from ``seed``.
+    site: int | None = None
+    #: with ``site``: how far (deg) a session's camera azimuth strays from the site's side
+    site_azimuth_deg: float = 60.0
 
     def validate(self) -> None:
         """Raise :class:`RobosegError` naming the first invalid value."""
@@ -94,6 +101,10 @@ class SimConfig:
             raise RobosegError(f"undraped_fraction must be in [0, 1), got {self.undraped_fraction}")
         if self.fps <= 0:
             raise RobosegError(f"fps must be > 0, got {self.fps}")
+        if self.site is not None and not 0.0 <= self.site_azimuth_deg <= 180.0:
+            raise RobosegError(
+                f"site_azimuth_deg must be in [0, 180], got {self.site_azimuth_deg}"
+            )
         lo, hi = self.distance
         if not 0.3 <= lo <= hi:
             raise RobosegError(
@@ -157,17 +168,21 @@ def yaw_transform(x: float, y: float, yaw: float) -> np.ndarray:
 
 
 def sample_camera(
-    rng: np.random.Generator, bases: list[np.ndarray], distance: tuple[float, float]
+    rng: np.random.Generator,
+    bases: list[np.ndarray],
+    distance: tuple[float, float],
+    azimuth: tuple[float, float] = (-math.pi, math.pi),
 ) -> tuple[np.ndarray, np.ndarray]:
     """Camera eye and look-at target (world): the target about 0.45 m above the bases' centre,
-    the eye ``distance`` away (longer for two robots) at 15–55° elevation, any azimuth."""
+    the eye ``distance`` away (longer for two robots) at 15–55° elevation, at an azimuth (rad,
+    about world z from +x) drawn from ``azimuth`` (default: any)."""
     centre = np.mean([T[:3, 3] for T in bases], axis=0)
     target = centre + np.array([0.1, 0.0, 0.45]) + rng.normal(0.0, 0.08, 3)
     lo, hi = distance
     if len(bases) > 1:
         lo, hi = max(lo, 1.8), max(hi, 2.8)
     d = rng.uniform(lo, hi)
-    az = rng.uniform(-math.pi, math.pi)
+    az = rng.uniform(*azimuth)
     el = rng.uniform(math.radians(15), math.radians(55))
     eye = target + d * np.array(
         [math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), math.sin(el)]
@@ -228,7 +243,29 @@ class _World:
     blur_sigma: float
 
 
-def _build_robots(cfg: SimConfig, rng: np.random.Generator) -> list[_Robot]:
+@dataclass(frozen=True)
+class SiteDraws:
+    """What one site fixes for all its sessions: the room's random stream, the drape kind's
+    random stream (kind, tint, opacity, gloss; a session's folds stay its own) and the
+    azimuth (rad) of the side of the table the cameras stand on."""
+
+    scene: np.random.Generator
+    drape: np.random.Generator
+    azimuth: float
+
+
+def site_draws(site: int) -> SiteDraws:
+    """The random streams of site ``site`` (independent of any session seed)."""
+    scene, drape, side = (np.random.default_rng(s) for s in
+                          np.random.SeedSequence([int(site), 7_411]).spawn(3))
+    return SiteDraws(scene, drape, float(side.uniform(-math.pi, math.pi)))
+
+
+def _build_robots(
+    cfg: SimConfig, rng: np.random.Generator, drape_rng: np.random.Generator | None = None
+) -> list[_Robot]:
+    """The robots of the scene; their drape parameters come from ``drape_rng`` when given (a
+    site's), their folds, tape and motion from ``rng``."""
     full = load_robot(cfg.urdf)
     closed = is_closed(full.vertices.double().numpy(), full.faces.numpy(), full.vertex_link.numpy())
     log.info("robot %s: mesh %s", full.name, "closed" if closed else "open (no face culling)")
@@ -240,7 +277,7 @@ def _build_robots(cfg: SimConfig, rng: np.random.Generator) -> list[_Robot]:
             T = yaw_transform(
                 rng.uniform(1.05, 1.35), rng.uniform(-0.5, 0.5), math.pi + rng.uniform(-0.4, 0.4)
             )
-        params = sample_drape_params(rng)
+        params = sample_drape_params(rng if drape_rng is None else drape_rng)
         drape = Drape.around(full.vertices, full.vertex_link, params, rng)
         lower, upper = full.lower.double().numpy(), full.upper.double().numpy()
         n_u = undraped_count(cfg.frames, cfg.undraped_fraction)
@@ -276,22 +313,33 @@ def simulate_recording(cfg: SimConfig, path: str | Path) -> SimSummary:
     rng_robot, rng_cam, rng_scene, rng_occ, rng_light, rng_noise = (
         np.random.default_rng(s) for s in streams
     )
-    robots = _build_robots(cfg, rng_robot)
+    site = None if cfg.site is None else site_draws(cfg.site)
+    robots = _build_robots(cfg, rng_robot, None if site is None else site.drape)
     bases = [r.T_world_base for r in robots]
-    eye, target = sample_camera(rng_cam, bases, cfg.distance)
+    if site is None:
+        eye, target = sample_camera(rng_cam, bases, cfg.distance)
+    else:
+        spread = math.radians(cfg.site_azimuth_deg)
+        eye, target = sample_camera(rng_cam, bases, cfg.distance,
+                                    (site.azimuth - spread, site.azimuth + spread))
+        rng_scene = site.scene
     up = np.array([0.0, 0.0, 1.0]) + np.append(rng_cam.normal(0.0, 0.04, 2), 0.0)
     T_left_world = np.asarray(look_at(eye, target, up), dtype=np.float64)
     rig = StereoRig.zed2i_like(width=cfg.width, height=cfg.height, baseline=cfg.baseline)
     T_right_left = np.asarray(rig.T_right_left, dtype=np.float64)
-    scene = sample_scene(rng_scene, [T[:3, 3] for T in bases], eye[:2])
-    site = np.array(
+    # a site's room is laid out once, for the camera side of the table (its equipment stands
+    # beyond the robots, seen from any of its sessions' placements)
+    room_view = eye[:2] if site is None else 3.0 * np.array(
+        [math.cos(site.azimuth), math.sin(site.azimuth)])
+    scene = sample_scene(rng_scene, [T[:3, 3] for T in bases], room_view)
+    incision = np.array(
         [
             scene.ellipsoids[0].site[0],
             scene.ellipsoids[0].site[1],
             scene.ellipsoids[0].centre[2] + scene.ellipsoids[0].radii[2],
         ]
     )
-    occluders = sample_occluders(rng_occ, eye, target, scene.floor_z, site)
+    occluders = sample_occluders(rng_occ, eye, target, scene.floor_z, incision)
     n_frames = cfg.frames
     lighting = sample_lighting(rng_light, n_frames / cfg.fps)
     world = _World(
@@ -311,6 +359,7 @@ def simulate_recording(cfg: SimConfig, path: str | Path) -> SimSummary:
     drape_start = int(stamps[n_u]) if n_u < n_frames else None
     meta = {
         "seed": str(cfg.seed),
+        "site": "" if cfg.site is None else str(cfg.site),
         "frames": str(n_frames),
         "robots": str(cfg.robots),
         "urdf": str(robots[0].full.urdf_path),
