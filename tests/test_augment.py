@@ -16,6 +16,7 @@ from roboseg.augment import (
     HorizontalFlip,
     InContextPrior,
     Photometric,
+    RobotCrop,
     to_model_input,
 )
 from roboseg.augment.geometric import affine_matrix
@@ -381,3 +382,52 @@ def test_in_context_prior_renders_many_views_at_once_as_unions_per_sample():
                                {k: v[:0] for k, v in params.items()},
                                torch.zeros(0, dtype=torch.long), 2)
     assert empty.shape == (2, 1, H, W) and not empty.any()
+
+
+# --- training crops and the augmentation ramp ------------------------------------------------
+
+
+def test_robot_crop_cuts_image_mask_and_prior_alike():
+    batch = painted_batch(6)
+    crop = RobotCrop((24, 32), p_robot=1.0, jitter=0.0)
+    corners = crop.sample(batch["mask"], gen(3))
+    out = crop.apply(batch, corners)
+    for i, (top, left) in enumerate(corners.tolist()):
+        assert 0 <= top <= H - 24 and 0 <= left <= W - 32
+        for key in ("image", "mask", "prior"):
+            assert torch.equal(out[key][i], batch[key][i, :, top:top + 24, left:left + 32])
+        assert out["mask"][i].sum() > 0  # centred on a robot pixel
+    # the robot of sample 0 (16x20 px) fits a 24x32 window centred on one of its pixels only
+    # when that pixel lies near its middle; visible stays true exactly when nothing was cut
+    whole = batch["mask"].flatten(1).sum(1) == out["mask"].flatten(1).sum(1)
+    assert torch.equal(out["visible"], whole)
+
+
+def test_robot_crop_centres_on_robot_pixels_with_probability_p():
+    batch = painted_batch(4)
+    mask = torch.zeros(400, 1, H, W)
+    mask[:, :, 40:44, 56:60] = 1  # a small robot in the bottom-right corner
+    far = RobotCrop((16, 16), p_robot=0.0).sample(mask, gen(0))
+    near = RobotCrop((16, 16), p_robot=1.0, jitter=0.0).sample(mask, gen(0))
+    hit = lambda c: ((c[:, 0] <= 40) & (c[:, 0] + 16 >= 44) & (c[:, 1] <= 56)  # noqa: E731
+                     & (c[:, 1] + 16 >= 60)).float().mean()
+    assert hit(near) == 1.0
+    assert hit(far) < 0.2  # uniform windows seldom hold it
+    with pytest.raises(ValueError, match="larger than the frames"):
+        RobotCrop((H + 1, 8)).sample(batch["mask"], gen(0))
+
+
+def test_ramp_gates_the_ramped_steps_by_training_step():
+    batch = painted_batch(4)
+    pipe = AugmentationPipeline(photometric=Photometric([Grayscale(p=1.0)]), ramp_steps=100)
+    pipe.set_step(0)
+    assert pipe.strength() == 0.0
+    assert torch.equal(pipe(batch, gen(0))["image"], batch["image"])  # nothing applied yet
+    pipe.set_step(100)
+    assert pipe.strength() == 1.0
+    assert not torch.equal(pipe(batch, gen(0))["image"], batch["image"])
+    pipe.set_step(50)
+    changed = [not torch.equal(pipe(batch, gen(s))["image"], batch["image"]) for s in range(200)]
+    assert 0.35 < sum(changed) / len(changed) < 0.65
+    with pytest.raises(ValueError):
+        AugmentationPipeline(ramp_steps=-1)

@@ -12,7 +12,7 @@ the frame), ``index`` long ``[B]``.
 """
 
 from roboseg.augment.cmm import CutMixMerge
-from roboseg.augment.geometric import ConditionalAffine, HorizontalFlip
+from roboseg.augment.geometric import ConditionalAffine, HorizontalFlip, RobotCrop
 from roboseg.augment.photometric import Photometric
 from roboseg.augment.pipeline import AugmentationPipeline, to_model_input
 from roboseg.augment.prior import InContextPrior
@@ -24,5 +24,6 @@ __all__ = [
     "HorizontalFlip",
     "InContextPrior",
     "Photometric",
+    "RobotCrop",
     "to_model_input",
 ]

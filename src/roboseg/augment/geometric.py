@@ -142,3 +142,72 @@ class ConditionalAffine(nn.Module):
     def forward(self, batch: Batch, generator: torch.Generator) -> Batch:
         h, w = batch["image"].shape[-2:]
         return self.apply(batch, self.sample(batch["visible"], h, w, generator))
+
+
+class RobotCrop(nn.Module):
+    """A ``size = [h, w]`` window of every sample (image, mask, prior alike), for training on
+    crops of a larger frame while the fully convolutional U-Net predicts whole frames.
+
+    With probability ``p_robot`` a sample's window is centred on one of its robot pixels
+    (uniformly drawn, so long links and near robots get most windows) shifted by up to
+    ``jitter`` of the window size, else placed uniformly; windows stay inside the frame.
+    ``visible`` stays true only where the whole robot of the frame lies inside the window.
+    """
+
+    def __init__(self, size: tuple[int, int] = (256, 256), p_robot: float = 0.8,
+                 jitter: float = 0.35) -> None:
+        super().__init__()
+        if len(size) != 2 or min(int(v) for v in size) < 1:
+            raise ValueError(f"crop size must be [h, w] > 0, got {list(size)}")
+        if not 0.0 <= p_robot <= 1.0:
+            raise ValueError(f"crop p_robot must be in [0, 1], got {p_robot}")
+        self.size = (int(size[0]), int(size[1]))
+        self.p_robot, self.jitter = float(p_robot), float(jitter)
+
+    def sample(self, mask: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """Top-left corners ``[B, 2]`` (row, column; long) of the windows of masks ``[B,1,H,W]``."""
+        n, (H, W), (h, w) = mask.shape[0], mask.shape[-2:], self.size
+        if h > H or w > W:
+            raise ValueError(f"crop {h}x{w} is larger than the frames ({H}x{W}); "
+                             "lower the crop size or raise data.image_size")
+        dev = generator.device
+        u = torch.rand(n, 5, generator=generator, device=dev)
+        top = (u[:, 0] * (H - h + 1)).long()
+        left = (u[:, 1] * (W - w + 1)).long()
+        flat = mask.to(dev).flatten(1) > 0.5
+        counts = flat.sum(1)
+        centred = (u[:, 2] < self.p_robot) & (counts > 0)
+        if bool(centred.any()):
+            # the k-th robot pixel of each sample, k uniform in [0, count)
+            k = (u[:, 3] * counts.clamp(min=1)).long().clamp(max=flat.shape[1] - 1)
+            rank = flat.cumsum(1) - 1
+            pick = torch.argmax(((rank == k[:, None]) & flat).int(), dim=1)
+            row, col = pick // W, pick % W
+            shift = ((u[:, 4] - 0.5) * 2 * self.jitter)
+            ctop = (row - h // 2 + (shift * h).long()).clamp(0, H - h)
+            cleft = (col - w // 2 + (shift * w).long()).clamp(0, W - w)
+            top = torch.where(centred, ctop, top)
+            left = torch.where(centred, cleft, left)
+        return torch.stack([top, left], 1)
+
+    def apply(self, batch: Batch, corners: torch.Tensor) -> Batch:
+        """Cut every spatial entry to its sample's window; update ``visible``."""
+        h, w = self.size
+        out = dict(batch)
+        rows = corners[:, 0, None] + torch.arange(h, device=corners.device)  # [B, h]
+        cols = corners[:, 1, None] + torch.arange(w, device=corners.device)  # [B, w]
+        for key in SPATIAL_MODES:
+            if key not in batch:
+                continue
+            x = batch[key]
+            r = rows.to(x.device)[:, None, :, None].expand(-1, x.shape[1], -1, x.shape[-1])
+            x = torch.gather(x, 2, r)
+            c = cols.to(x.device)[:, None, None, :].expand(-1, x.shape[1], h, -1)
+            out[key] = torch.gather(x, 3, c)
+        if "visible" in batch:
+            whole = batch["mask"].flatten(1).sum(1) == out["mask"].flatten(1).sum(1)
+            out["visible"] = batch["visible"].bool() & whole.to(batch["visible"].device)
+        return out
+
+    def forward(self, batch: Batch, generator: torch.Generator) -> Batch:
+        return self.apply(batch, self.sample(batch["mask"], generator))

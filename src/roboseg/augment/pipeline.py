@@ -15,7 +15,7 @@ import torch
 from torch import nn
 
 from roboseg.augment.cmm import CutMixMerge
-from roboseg.augment.geometric import ConditionalAffine, HorizontalFlip
+from roboseg.augment.geometric import ConditionalAffine, HorizontalFlip, RobotCrop
 from roboseg.augment.photometric import Photometric
 
 Batch = dict[str, torch.Tensor]
@@ -28,6 +28,12 @@ IMAGENET_STD: tuple[float, float, float] = (0.229, 0.224, 0.225)
 class AugmentationPipeline(nn.Module):
     """Steps (2)-(4) on a batch dict; a step given as None is skipped.
 
+    ``crop`` (optional, first) cuts training windows out of larger frames (:class:`RobotCrop`).
+    ``ramp_steps`` > 0 ramps the augmentation in: at training step ``t`` (see :meth:`set_step`)
+    the affine, cut-mix-merge and photometric steps each run on a batch with probability
+    ``min(1, t / ramp_steps)`` (crop and flip always run); 0 gives the paper's strength from the
+    first step.
+
     Random draws come from a ``torch.Generator`` on the batch's device seeded with ``seed``
     (see :meth:`reseed`), or from the generator passed to :meth:`forward`.
     """
@@ -39,8 +45,13 @@ class AugmentationPipeline(nn.Module):
         cmm: CutMixMerge | None = None,
         photometric: Photometric | None = None,
         seed: int = 0,
+        crop: RobotCrop | None = None,
+        ramp_steps: int = 0,
     ) -> None:
         super().__init__()
+        if ramp_steps < 0:
+            raise ValueError(f"ramp_steps must be >= 0, got {ramp_steps}")
+        self.crop, self.ramp_steps, self.step = crop, int(ramp_steps), 0
         self.flip, self.affine, self.cmm, self.photometric = flip, affine, cmm, photometric
         self.seed = int(seed)
         self._generators: dict[str, torch.Generator] = {}
@@ -49,6 +60,14 @@ class AugmentationPipeline(nn.Module):
     def uses_cmm(self) -> bool:
         """Whether cut-mix-merge can happen (a Table S4 column)."""
         return self.cmm is not None and self.cmm.p > 0
+
+    def set_step(self, step: int) -> None:
+        """The training step the next batches belong to (drives :meth:`strength`)."""
+        self.step = int(step)
+
+    def strength(self) -> float:
+        """Probability in [0, 1] that each ramped step runs on the current batch."""
+        return 1.0 if self.ramp_steps <= 0 else min(1.0, self.step / self.ramp_steps)
 
     def reseed(self, seed: int) -> None:
         """Restart the random streams from ``seed`` (e.g. base seed + DDP rank)."""
@@ -73,9 +92,16 @@ class AugmentationPipeline(nn.Module):
         out.setdefault("prior", torch.zeros_like(batch["mask"]))
         out.setdefault("visible", torch.ones(batch["image"].shape[0], dtype=torch.bool,
                                              device=batch["image"].device))
-        for step in (self.flip, self.affine, self.cmm, self.photometric):
-            if step is not None:
-                out = step(out, gen)
+        strength = self.strength()
+        for step in (self.crop, self.flip, self.affine, self.cmm, self.photometric):
+            if step is None:
+                continue
+            ramped = step is not self.crop and step is not self.flip
+            if ramped and strength < 1.0:
+                gate = torch.rand((), generator=gen, device=gen.device)
+                if float(gate) >= strength:
+                    continue
+            out = step(out, gen)
         return out
 
 
