@@ -18,7 +18,8 @@ from roboseg.models import (
 
 
 def test_registry_lists_the_paper_presets():
-    expected = {f"unet_mit_b{i}" for i in range(6)} | {"unet_resnet18", "unet_resnet101"}
+    expected = {f"unet_mit_b{i}" for i in range(6)} | {"unet_resnet18", "unet_resnet101",
+                                                      "unet_regnety_004"}
     assert set(available_models()) == expected
     assert PRESETS["unet_mit_b3"].encoder == "mit_b3"
 
@@ -30,7 +31,7 @@ def test_parameter_counts_match_the_paper(name):
     assert n == pytest.approx(PRESETS[name].paper_params_m, rel=0.01)
 
 
-@pytest.mark.parametrize("name", ["unet_mit_b0", "unet_resnet18"])
+@pytest.mark.parametrize("name", ["unet_mit_b0", "unet_resnet18", "unet_regnety_004"])
 @pytest.mark.parametrize("in_channels", [3, 4])
 def test_forward_shape_and_decoder(name, in_channels):
     torch.manual_seed(0)

@@ -304,3 +304,15 @@ def test_trainer_presets_and_augment_none():
     module = SegmentationModule(model={"name": "unet_resnet18"}, augment=cfg.augment)
     assert module.augment is None
     assert build_unet("unet_resnet18") is not None
+
+
+def test_per_frame_iou_hand_values():
+    from roboseg.training import per_frame_iou
+
+    pred = torch.zeros(3, 1, 2, 4, dtype=torch.bool)
+    target = torch.zeros_like(pred)
+    pred[0, 0, 0, :2] = True
+    target[0, 0, 0, 1:3] = True  # 1 shared of 3 → 1/3
+    target[1, 0, 1, 0] = True  # nothing predicted → 0
+    # frame 2: both empty → 1 (a frame without robot predicted empty is right)
+    assert per_frame_iou(pred, target).tolist() == pytest.approx([1 / 3, 0.0, 1.0])

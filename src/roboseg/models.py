@@ -62,6 +62,8 @@ for _encoder, _params in (
     ("resnet101", 51.5),
 ):
     register_preset(f"unet_{_encoder}", UnetPreset(_encoder, _params))
+# a light CNN encoder of timm (RegNetY-400MF) through smp's ``tu-`` bridge: the CPU default
+register_preset("unet_regnety_004", UnetPreset("tu-regnety_004"))
 
 
 def available_models() -> list[str]:

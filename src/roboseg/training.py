@@ -24,6 +24,7 @@ import lightning.pytorch as pl
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf
+from torchmetrics import MeanMetric
 from torchmetrics.classification import BinaryJaccardIndex
 
 from roboseg.augment.pipeline import IMAGENET_MEAN, IMAGENET_STD, AugmentationPipeline, prepare
@@ -60,6 +61,14 @@ def lr_factor(
         return warm
     progress = min(1.0, max(0, step - warmup_steps) / max(1, total_steps - warmup_steps))
     return warm * (final + (1 - final) * 0.5 * (1 + math.cos(math.pi * progress)))
+
+
+def per_frame_iou(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """IoU ``[B]`` of boolean masks ``[B, ...]``; a frame where both are empty scores 1."""
+    pred, target = pred.flatten(1).bool(), target.flatten(1).bool()
+    inter = (pred & target).sum(1).float()
+    union = (pred | target).sum(1).float()
+    return torch.where(union > 0, inter / union.clamp(min=1), torch.ones_like(union))
 
 
 class NonFiniteLossError(RobosegError, FloatingPointError):
@@ -170,6 +179,8 @@ class SegmentationModule(pl.LightningModule):
         self.train_iou = BinaryJaccardIndex(threshold=float(threshold))
         self.val_iou = BinaryJaccardIndex(threshold=float(threshold))
         self.test_iou = BinaryJaccardIndex(threshold=float(threshold))
+        self.val_frame_iou = MeanMetric()
+        self.test_frame_iou = MeanMetric()
 
     # --- properties -----------------------------------------------------------------------
 
@@ -207,6 +218,7 @@ class SegmentationModule(pl.LightningModule):
             raise DatasetError(f"batch samples {where.tolist()} have non-finite image values")
         training = self._trainer is not None and self.trainer.training
         if training and self.augment is not None:
+            self.augment.set_step(self.global_step)
             batch = self.augment(batch)
         batch = dict(batch)
         batch["input"], batch["target"] = prepare(
@@ -231,11 +243,14 @@ class SegmentationModule(pl.LightningModule):
             iou(probs, target.int())
             self.log("train/loss", loss, prog_bar=True, batch_size=n)
             self.log("train/iou", iou, on_step=True, on_epoch=True, batch_size=n)
-        else:  # IoU over all pixels of the split, synchronised over DDP ranks by torchmetrics
+        else:  # per-frame mean and pooled IoU, synchronised over DDP ranks by torchmetrics
             iou.update(probs, target.int())
+            frame_iou = self.val_frame_iou if stage == "val" else self.test_frame_iou
+            frame_iou.update(per_frame_iou(probs > self.hparams.threshold, target > 0.5))
             self.log(f"{stage}/loss", loss, prog_bar=True, batch_size=n, sync_dist=True)
-            self.log(f"{stage}/iou", iou, prog_bar=True, on_step=False, on_epoch=True,
+            self.log(f"{stage}/iou", frame_iou, prog_bar=True, on_step=False, on_epoch=True,
                      batch_size=n)
+            self.log(f"{stage}/iou_pooled", iou, on_step=False, on_epoch=True, batch_size=n)
         return loss
 
     def training_step(self, batch: Batch, batch_idx: int) -> torch.Tensor:
