@@ -171,3 +171,23 @@ def test_eval_options_and_errors(dataset: Path, models: dict[str, Path], tmp_pat
         from roboseg.evaluation.run import load_model
 
         load_model(tmp_path / "nothing.onnx")
+
+
+def test_phase_keeps_draped_or_undraped_frames(dataset: Path, models: dict[str, Path],
+                                               tmp_path: Path) -> None:
+    start = load_manifest(dataset)["recordings"][0]["draped_from_ns"]
+    assert start is not None
+    stamps = {}
+    for phase in ("draped", "undraped"):
+        out = tmp_path / phase
+        run(eval_cfg(models=f"[{models['onnx4']}]", **{"data.root": dataset}, out=out,
+                     phase=phase, progress="false", figure_frames=1))
+        per_frame = read_csv(out / "per_frame_iou.csv")
+        stamps[phase] = {int(r["stamp"]) for r in per_frame}
+        assert read_csv(out / "iou_table.csv")[0]["frames"] == str(len(stamps[phase]))
+    assert stamps["draped"] and stamps["undraped"]
+    assert min(stamps["draped"]) >= start > max(stamps["undraped"])
+    assert len(stamps["draped"]) + len(stamps["undraped"]) == FRAMES
+    with pytest.raises(SystemExit):
+        run(eval_cfg(models=f"[{models['onnx4']}]", **{"data.root": dataset},
+                     out=tmp_path / "bad", phase="wet", progress="false"))

@@ -74,6 +74,7 @@ def run(cfg: DictConfig) -> list[TableRow]:
         prior=prior,
         source_size=None if train_size is None else (int(train_size[0]), int(train_size[1])),
         progress=bool(cfg.progress),
+        phase=str(cfg.phase),
     )
     print(table_markdown(rows), end="")
     for r in rows:

@@ -39,6 +39,8 @@ MANIFEST_FORMAT = "roboseg-annotations/1"
 #: ``labels`` setting → mask kind read from ``/<camera>/left/<kind>/compressed``.
 LABEL_KINDS = {"annotated": ROBOT_MASK, "gt": ROBOT_MASK_GT}
 PRIORS = ("zero", "perturbed")
+#: Frames of a recording that evaluation keeps: from ``draped_from_ns`` on, before it, or all.
+PHASES = ("all", "draped", "undraped")
 
 
 # --- dataset ---------------------------------------------------------------------------------
@@ -145,8 +147,14 @@ def iter_frames(
     camera: str = "camera",
     max_frames: int | None = None,
     prior: PriorRenderer | None = None,
+    draped_from: Mapping[str, int | None] | None = None,
+    phase: str = "all",
 ) -> Iterator[EvalFrame]:
-    """Stream the left frames of ``files`` with their label masks (and priors if ``prior``)."""
+    """Stream the left frames of ``files`` with their label masks (and priors if ``prior``).
+
+    ``phase`` ``draped`` / ``undraped`` keeps the frames at or after / before the first draped
+    stamp (ns) ``draped_from[file name]``; recordings without one (real data) keep every frame.
+    """
     from roboseg.recording import RecordingReader
 
     if labels not in LABEL_KINDS:
@@ -171,9 +179,13 @@ def iter_frames(
             log.info("evaluating %s (%d left images)", path.name, len(reader))
             K, _, _, left_frame = reader.camera_info("left")
             poses = robot_poses(reader, prior.robot().root_link, left_frame) if prior else {}
+            start = (draped_from or {}).get(path.name)
             for frame in reader.frames():
                 if max_frames is not None and count >= max_frames:
                     return
+                if phase != "all" and start is not None and (
+                        (frame.stamp_ns >= start) != (phase == "draped")):
+                    continue
                 h, w = frame.left.shape[:2]
                 rendered = prior.render(K, (h, w), poses, frame.joints) if prior else None
                 yield EvalFrame(
@@ -282,12 +294,16 @@ def evaluate_models(
     prior: PriorRenderer | None = None,
     source_size: tuple[int, int] | None = None,
     progress: bool = True,
+    phase: str = "all",
 ) -> list[TableRow]:
     """Evaluate ``models`` on ``split`` of the annotated dataset ``root``; write ``out/``
     ``iou_table.md``, ``iou_table.csv``, ``per_frame_iou.csv`` and ``qualitative_<row>.png``.
 
     ``source_size`` ``(H, W)``: image size the models were trained from (for the aspect check).
+    ``phase``: ``all`` frames, or only the ``draped`` / ``undraped`` ones (see :func:`iter_frames`).
     """
+    if phase not in PHASES:
+        raise DatasetError(f"phase must be one of {PHASES}, got {phase!r}")
     manifest = load_manifest(root)
     files = split_recordings(manifest, root, split)
     loaded = [(Path(m), load_model(m, overrides)) for m in models]
@@ -313,6 +329,8 @@ def evaluate_models(
         camera=str(manifest.get("camera", "camera")),
         max_frames=max_frames,
         prior=prior if needs_prior else None,
+        draped_from={r["file"]: r.get("draped_from_ns") for r in manifest["recordings"]},
+        phase=phase,
     )
     bar = _progress(frames, n_expected, progress)
     for i, frame in enumerate(bar):
@@ -326,7 +344,9 @@ def evaluate_models(
             if i in shown:
                 run.figure.append((frame.image, frame.target, pred, f"{frame.file} @{i}"))
     if not runs[0].ious:
-        raise DatasetError(f"data.root {root}: split {split!r} yielded no frames with labels")
+        what = "" if phase == "all" else f" {phase}"
+        raise DatasetError(
+            f"data.root {root}: split {split!r} yielded no{what} frames with labels")
     rows = [_row(r) for r in runs]
     write_outputs(Path(out), rows, runs, per_frame)
     return rows
