@@ -8,6 +8,7 @@ it stopped. Run: ``python -m roboseg.pipeline [out=DIR] [key=value ...]`` (Hydra
 
 from __future__ import annotations
 
+import csv
 import logging
 import shlex
 import shutil
@@ -56,27 +57,38 @@ class Stages:
         return True
 
 
-def run_pipeline(cfg: DictConfig) -> Path:
-    """Run the stages of ``cfg`` (see ``conf/pipeline.yaml``); return the model's ONNX path."""
-    out = Path(cfg.out).resolve()
-    stages = Stages(out)
-    raw, annotated, train_dir = out / "recordings", out / "annotated", out / "train"
+def prepare_data(cfg: DictConfig, stages: Stages, out: Path) -> Path:
+    """Simulate the study of ``cfg.simulate`` into ``out/recordings`` and self-annotate it into
+    ``out/annotated`` (stages that finished are skipped); return the annotated folder."""
+    raw, annotated = out / "recordings", out / "annotated"
     sim = cfg.simulate
+    site = sim.get("site")
     for split, count in sim.recordings.items():
+        frames = sim.frames[split] if OmegaConf.is_dict(sim.frames) else sim.frames
         for i in range(int(count)):
             name = f"{split}_{i:02d}"
             robots = 2 if split == "test" else 1
             stages.run(
                 f"simulate_{name}",
-                [script("roboseg-simulate"), f"out={raw}", f"name={name}", f"frames={sim.frames}",
-                 f"seed={int(sim.seed) + 100 * i + hash_split(split)}", f"robots={robots}",
+                [script("roboseg-simulate"), f"out={raw}", f"name={name}", f"frames={int(frames)}",
+                 f"seed={session_seed(int(sim.seed), split, i)}", f"robots={robots}",
                  f"camera.width={sim.width}", f"camera.height={sim.height}",
+                 *([] if site is None else [f"site={int(site)}"]),
                  *sim.get("overrides", [])],
             )
     stages.run(
         "annotate",
         [script("roboseg-annotate"), f"in={raw}", f"out={annotated}", *cfg.annotate.overrides],
     )
+    return annotated
+
+
+def run_pipeline(cfg: DictConfig) -> Path:
+    """Run the stages of ``cfg`` (see ``conf/pipeline.yaml``); return the model's ONNX path."""
+    out = Path(cfg.out).resolve()
+    stages = Stages(out)
+    train_dir = out / "train"
+    annotated = prepare_data(cfg, stages, out)
     stages.run(
         "train",
         [script("roboseg-train"), f"experiment={cfg.train.experiment}", f"data.root={annotated}",
@@ -88,14 +100,42 @@ def run_pipeline(cfg: DictConfig) -> Path:
         shutil.copy2(best, ckpt)
     onnx = out / "model.onnx"
     stages.run("export", [script("roboseg-export"), f"ckpt={ckpt}", f"out={onnx}"])
-    stages.run(
-        "evaluate",
-        [script("roboseg-eval"), f"models=[{onnx}]", f"data.root={annotated}",
-         f"out={out / 'eval'}", *cfg.evaluate.overrides],
-    )
-    print(f"model checkpoint: {ckpt}\nONNX model:       {onnx}\nIoU table:        "
-          f"{out / 'eval' / 'iou_table.md'}", flush=True)
+    results = {}
+    for name, spec in cfg.evaluate.runs.items():
+        folder = out / str(name)
+        stages.run(
+            name if name == "evaluate" else f"evaluate_{name}",
+            [script("roboseg-eval"), f"models=[{onnx}]", f"data.root={annotated}",
+             f"out={folder}", f"split={spec.split}", f"phase={spec.phase}",
+             *cfg.evaluate.overrides],
+        )
+        results[str(name)] = (spec, table_iou(folder / "iou_table.csv"))
+    print(f"model checkpoint: {ckpt}\nONNX model:       {onnx}", flush=True)
+    for name, (spec, (mean, std, n)) in results.items():
+        print(f"{spec.split} IoU, {spec.phase} frames: {mean:.3f} ± {std:.3f} over {n} frames "
+              f"({out / name / 'iou_table.md'})", flush=True)
+    headline = results.get(str(cfg.evaluate.headline))
+    if headline is not None:
+        print(f"val/iou={headline[1][0]:.3f}", flush=True)
     return onnx
+
+
+def table_iou(path: Path) -> tuple[float, float, int]:
+    """Per-frame mean IoU, its standard deviation and the frame count of the first row of an
+    ``iou_table.csv`` written by ``roboseg-eval``."""
+    with path.open(newline="") as f:
+        row = next(csv.DictReader(f), None)
+    if row is None:
+        raise SystemExit(f"{path}: no rows")
+    return float(row["iou_mean"]), float(row["iou_std"]), int(row["frames"])
+
+
+def session_seed(seed: int, split: str, index: int) -> int:
+    """Simulator seed of recording ``index`` of ``split``: distinct for up to 1000 recordings per
+    split, so no validation or test session repeats a training one."""
+    if not 0 <= index < 1000:
+        raise SystemExit(f"simulate.recordings.{split}: at most 1000 recordings per split")
+    return seed + hash_split(split) + index
 
 
 def hash_split(split: str) -> int:
