@@ -28,3 +28,15 @@ class DatasetError(RobosegError):
 
 class ModelFileError(RobosegError):
     """A checkpoint or ONNX file does not match what it claims to be."""
+
+
+class SegmentationError(RobosegError):
+    """A segmentor cannot make masks: bad settings, a missing optional package or checkpoint."""
+
+
+class NoMotionError(SegmentationError):
+    """Motion segmentation found no robot motion (joints or pixels) in the recording's window."""
+
+
+class PromptError(SegmentationError, ValueError):
+    """A prompt file is malformed, names an unknown camera or points outside the image."""

@@ -2,7 +2,9 @@
 
 ``roboseg-register recording=FILE.mcap model=FILE.onnx method=sdr|sdr_prior out=DIR
 [robot.urdf=PATH] [robot.name=robot_0] [phase=undraped] [configs=9] [write_recording=true]``
-(``conf/register.yaml``; ``model=`` is stored as ``model_file``) writes ``DIR/pose.yaml``
+(``conf/register.yaml``; ``model=`` is stored as ``model_file``; without a model,
+``segmentor=motion`` or ``segmentor=prompt|sam2 prompt=FILE.yaml`` make the masks, see
+:mod:`roboseg.registration.segmentors`) writes ``DIR/pose.yaml``
 (``T_cam_base``: base frame → left optical frame, metres, 4×4 row-major),
 ``DIR/overlays/*.png`` (estimate tinted green, segmentation outlined red) and, with
 ``write_recording=true``, ``DIR/<stem>_registered.mcap``: the recording with the estimate in
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +28,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from roboseg.cli._main import user_errors_exit
 from roboseg.config import CONF_DIR
-from roboseg.errors import CameraError, ModelFileError, RecordingError, RobosegError
+from roboseg.errors import (
+    CameraError,
+    ModelFileError,
+    RecordingError,
+    RobosegError,
+    SegmentationError,
+)
 from roboseg.recording import TF_STATIC, RecordingReader
 from roboseg.registration.cso import CSOConfig
 from roboseg.registration.register import (
@@ -36,6 +45,7 @@ from roboseg.registration.register import (
 )
 from roboseg.registration.sdr import SDRConfig
 from roboseg.registration.sdr_prior import PriorConfig
+from roboseg.registration.segmentors import SEGMENTORS, Segmentor, make_segmentor
 from roboseg.robot import RobotModel, load_robot
 
 log = logging.getLogger("roboseg.register")
@@ -48,8 +58,14 @@ TINT_BGR = np.array((60, 200, 60), np.float32)
 SEG_BGR = (40, 40, 230)
 
 
-def pose_document(reg: Registration, recording: str, model: str | None) -> dict[str, Any]:
-    """The contents of ``pose.yaml`` (plain Python types)."""
+def pose_document(
+    reg: Registration,
+    recording: str,
+    model: str | None,
+    segmentor: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The contents of ``pose.yaml`` (plain Python types); ``segmentor`` describes where the
+    masks came from (default: the model)."""
     r = reg.result
     return {
         "convention": CONVENTION,
@@ -70,6 +86,8 @@ def pose_document(reg: Registration, recording: str, model: str | None) -> dict[
         "cso_runs": int(reg.cso_runs),
         "recording": recording,
         "model": model,
+        "segmentor": segmentor or {"kind": "model"},
+        "compared_links": reg.links,
         "configurations": [
             {
                 "index": c.index,
@@ -236,6 +254,35 @@ def config_from_cfg(cfg: DictConfig) -> RegisterConfig:
         raise CameraError(f"invalid registration setting: {exc}") from exc
 
 
+def segmentor_from_cfg(cfg: DictConfig) -> Segmentor:
+    """The non-model segmentor ``cfg.segmentor`` names, from its section of the config."""
+    from roboseg.registration.grabcut import GrabCutConfig
+    from roboseg.registration.motion import MotionConfig
+
+    kind = str(cfg.segmentor)
+    if kind not in SEGMENTORS:
+        raise SegmentationError(f"segmentor must be one of {', '.join(SEGMENTORS)}, got {kind!r}")
+    section = {"motion": "motion", "prompt": "grabcut", "sam2": "sam2"}[kind]
+    try:
+        opts = OmegaConf.to_container(cfg[section], resolve=True)
+        assert isinstance(opts, dict)
+        if kind == "motion":
+            return make_segmentor(kind, config=MotionConfig(**opts))
+        prompt = None if cfg.get("prompt") is None else str(cfg.prompt)
+        if kind == "prompt":
+            return make_segmentor(kind, prompt=prompt, config=GrabCutConfig(**opts))
+        return make_segmentor(
+            kind,
+            prompt=prompt,
+            checkpoint=opts.get("checkpoint"),
+            model_config=str(opts.get("config")),
+            device=str(opts.get("device", "cpu")),
+            max_frames=int(opts.get("max_frames", 200)),
+        )
+    except TypeError as exc:
+        raise SegmentationError(f"{section}: invalid setting ({exc})") from exc
+
+
 @user_errors_exit
 def run(cfg: DictConfig) -> Path:
     """Register as ``cfg`` says; write the outputs; return the pose.yaml path."""
@@ -249,16 +296,38 @@ def run(cfg: DictConfig) -> Path:
     if urdf is not None and not Path(str(urdf)).is_file():
         raise RobosegError(f"robot.urdf: no such file {urdf}")
     reg_cfg = config_from_cfg(cfg)
-    segmentor = None
-    if cfg.model_file is None:
-        raise ModelFileError("model: required (model=FILE.onnx, e.g. outputs/default/model.onnx)")
-    from roboseg.segmentor import OnnxSegmentor
+    kind = str(cfg.get("segmentor") or "model")
+    if kind == "model":
+        if cfg.model_file is None:
+            raise ModelFileError(
+                "model: required (model=FILE.onnx, e.g. outputs/default/model.onnx)"
+            )
+        from roboseg.segmentor import OnnxSegmentor
 
-    segmentor = OnnxSegmentor(str(cfg.model_file), threads=int(cfg.threads))
-    robot = load_robot(None if urdf is None else str(urdf))
-    reg = register(recording, robot, segmentor=segmentor, config=reg_cfg)
+        segmentor = OnnxSegmentor(str(cfg.model_file), threads=int(cfg.threads))
+        robot = load_robot(None if urdf is None else str(urdf))
+        reg = register(recording, robot, segmentor=segmentor, config=reg_cfg)
+        model = str(Path(str(cfg.model_file)).resolve())
+        described: dict[str, Any] = {"kind": "model"}
+    else:
+        seg = segmentor_from_cfg(cfg)
+        note = None
+        if reg_cfg.method == "sdr_prior":
+            note = f"method=sdr_prior needs segmentor=model; segmentor={kind} used method=sdr"
+            log.warning("%s", note)
+            reg_cfg = replace(reg_cfg, method="sdr")
+        if seg.trims:
+            reg_cfg = replace(reg_cfg, trim_masks=True)
+        robot = load_robot(None if urdf is None else str(urdf))
+        seg.prepare(recording, robot, reg_cfg)
+        reg = register(
+            recording, robot, masks=seg, frames=seg.frames, links=seg.links, config=reg_cfg
+        )
+        if note:
+            reg.warnings.insert(0, note)
+        model, described = None, seg.describe()
     out = Path(str(cfg.out))
-    doc = pose_document(reg, str(recording.resolve()), str(Path(str(cfg.model_file)).resolve()))
+    doc = pose_document(reg, str(recording.resolve()), model, described)
     pose_path = save_pose_yaml(doc, out / "pose.yaml")
     write_overlays(reg, robot, out / "overlays")
     if bool(cfg.write_recording):

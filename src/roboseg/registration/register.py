@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -73,9 +73,11 @@ class RegisterConfig:
     robots (the masks show all of them), the SDR estimate is refined once more on the mask
     pixels within ``other_robots_margin`` × image width of this robot's silhouette (SDR with
     prior does the same around each prior), so the other robots neither pull the fit nor lower
-    its IoU; 0 turns this off. A result whose mean IoU is below ``min_iou`` is reported as a
-    poor fit, and so is an SDR-with-prior result whose IoU against the prior-free segmentation
-    is.
+    its IoU; 0 turns this off. ``trim_masks``: the masks may hold more than the robot (motion
+    segmentation while people walk past): the SDR estimate is refined once more on the mask
+    pixels within that same margin of its silhouette, as for several robots. A result whose
+    mean IoU is below ``min_iou`` is reported as a poor fit, and so is an SDR-with-prior result
+    whose IoU against the prior-free segmentation is.
     """
 
     configs: int = 9
@@ -94,6 +96,7 @@ class RegisterConfig:
     min_mask_fraction: float = 0.002
     min_iou: float = 0.5
     other_robots_margin: float = 0.05
+    trim_masks: bool = False
     cso: CSOConfig = field(
         default_factory=lambda: CSOConfig(n_particles=1000, iterations=20, width=48, restarts=2)
     )
@@ -133,7 +136,8 @@ class Registration:
     ``result`` that method's :class:`RegistrationResult`; ``sdr`` the plain SDR result;
     ``prior`` the SDR-with-prior result (None for method ``sdr``); ``dropped`` one line per frame
     or problem left out; ``images``/``masks`` per view ``[C, H, W(, 3)]`` of the used frames;
-    ``cso_fitness`` the swarm's best mean IoU and ``cso_runs`` how many swarms it took.
+    ``cso_fitness`` the swarm's best mean IoU and ``cso_runs`` how many swarms it took;
+    ``links`` the links rendered and compared (None: all of them).
     """
 
     T_cam_base: np.ndarray
@@ -155,6 +159,7 @@ class Registration:
     cso_fitness: float
     cso_runs: int
     seconds: dict[str, float]
+    links: list[str] | None = None
 
     @property
     def converged(self) -> bool:
@@ -438,6 +443,8 @@ def register(
     segmentor: Any | None = None,
     masks: MaskSource | None = None,
     config: RegisterConfig | None = None,
+    frames: Collection[int] | None = None,
+    links: Sequence[str] | None = None,
 ) -> Registration:
     """Register ``robot_model`` in the stereo camera of ``recording``.
 
@@ -445,6 +452,9 @@ def register(
     :class:`~roboseg.segmentor.OnnxSegmentor`; a 4-channel model gets a zero prior first).
     Method ``sdr``: CSO then multi-start SDR; ``sdr_prior`` continues with SDR with the
     in-context prior (needs ``segmentor``; only meaningful for a 4-channel model).
+    ``frames``: recording frame indices the caller can segment (None: any); ``links``: render
+    and compare only these links (e.g. those that moved, when the masks come from motion:
+    the others are part of the background); None: every link.
     """
     cfg = config or RegisterConfig()
     if (segmentor is None) == (masks is None):
@@ -471,6 +481,15 @@ def register(
         views, camera_frame = _views_from_recording(reader)
         window = phase_window(reader.metadata(), cfg.phase, cfg.start_ns, cfg.stop_ns, str(path))
         found, dropped = _candidates(reader, robot, window)
+        if frames is not None and found:
+            wanted = set(frames)
+            kept = [c for c in found if c.index in wanted]
+            if not kept:
+                raise RecordingError(
+                    f"{path}: the segmentation covers none of the {len(found)} frames in "
+                    f"phase={cfg.phase} window {window}"
+                )
+            found = kept
         if not found:
             raise RecordingError(
                 f"{path}: no usable stereo frame with joint states in phase={cfg.phase} "
@@ -518,11 +537,15 @@ def register(
     log.info("registering on %d configurations of %s (%s)", len(used), robot, path.name)
 
     q = torch.as_tensor(np.stack([c.joints for c in used]), dtype=robot_model.dtype)
-    coarse = robot_model.decimated(cfg.cso_reduction) if cfg.cso_reduction > 0 else robot_model
-    fine = robot_model.decimated(cfg.sdr_reduction) if cfg.sdr_reduction > 0 else robot_model
+    shapes = robot_model if links is None else robot_model.with_links(links)
+    if links is not None:
+        log.info("rendering and comparing links %s only", list(links))
+    coarse = shapes.decimated(cfg.cso_reduction) if cfg.cso_reduction > 0 else shapes
+    fine = shapes.decimated(cfg.sdr_reduction) if cfg.sdr_reduction > 0 else shapes
     others = len(robots_in_masks) > 1 and cfg.other_robots_margin > 0
+    trim = others or (cfg.trim_masks and cfg.other_robots_margin > 0)
     margins = [cfg.other_robots_margin * v.width for v in views]
-    fit = _Fitter(cfg, views, coarse, fine, q, margins if others else None)
+    fit = _Fitter(cfg, views, coarse, fine, q, margins if trim else None)
     verts = fit.verts
     full = mask_stacks
     res_sdr, mask_stacks, found_cso = fit(full, seconds)
@@ -623,6 +646,7 @@ def register(
         cso_fitness=found_cso.best.fitness,
         cso_runs=found_cso.runs,
         seconds=seconds,
+        links=None if links is None else list(links),
     )
 
 

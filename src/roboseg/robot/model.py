@@ -168,6 +168,29 @@ class RobotModel:
             self.dtype,
         )
 
+    def with_links(self, names: Sequence[str]) -> RobotModel:
+        """Same kinematics with the geometry of the links ``names`` only (e.g. the links that
+        moved during a recording). ``link_names`` and ``vertex_link`` indices are unchanged; the
+        other links simply carry no vertices. Raises :class:`RobotModelError` for an unknown or
+        an empty selection."""
+        unknown = sorted(set(names) - set(self.link_names))
+        if unknown or not names:
+            what = f"links {unknown} are not" if unknown else "no link is"
+            raise RobotModelError(
+                f"robot {self.name!r}: {what} among the links with geometry {self.link_names}"
+            )
+        keep = {self.link_names.index(n) for n in names}
+        return RobotModel(
+            self._urdf,
+            self._frames,
+            [s for s in self._shapes if s.link in keep],
+            self._index["_link_frames"].tolist(),
+            self.reduction,
+            self._cache_dir,
+            self.device,
+            self.dtype,
+        )
+
     # joints ----------------------------------------------------------------------------------
     def check_joints(self, q: torch.Tensor | Sequence[float] | np.ndarray) -> torch.Tensor:
         """Joint values as a [B, D] tensor of the model's device/dtype ([D] becomes [1, D])."""
