@@ -104,7 +104,7 @@ def run_pipeline(cfg: DictConfig) -> Path:
     for name, spec in cfg.evaluate.runs.items():
         folder = out / str(name)
         stages.run(
-            name if name == "evaluate" else f"evaluate_{name}",
+            f"evaluate_{name}",
             [script("roboseg-eval"), f"models=[{onnx}]", f"data.root={annotated}",
              f"out={folder}", f"split={spec.split}", f"phase={spec.phase}",
              *cfg.evaluate.overrides],

@@ -26,8 +26,7 @@ from omegaconf.errors import MissingMandatoryValue
 from roboseg.cli._main import user_errors_exit
 from roboseg.config import CONF_DIR
 from roboseg.errors import ModelFileError, RobosegError
-from roboseg.evaluation import binary_iou
-from roboseg.training import SegmentationModule
+from roboseg.training import SegmentationModule, per_frame_iou
 
 log = logging.getLogger("roboseg.train")
 
@@ -48,7 +47,7 @@ def _build(cfg: DictConfig, key: str) -> Any:
 
 
 @torch.no_grad()
-def per_frame_iou(module: SegmentationModule, loader: Any) -> float:
+def mean_frame_iou(module: SegmentationModule, loader: Any) -> float:
     """Mean over frames of the IoU of ``sigmoid(logits) > threshold`` with the mask."""
     module.eval()
     ious: list[float] = []
@@ -58,7 +57,7 @@ def per_frame_iou(module: SegmentationModule, loader: Any) -> float:
         batch = module.on_after_batch_transfer(batch, 0)
         pred = torch.sigmoid(module(batch["input"])) > module.hparams.threshold
         target = batch["target"] > 0.5
-        ious += [binary_iou(p.numpy(), t.numpy()) for p, t in zip(pred, target, strict=True)]
+        ious += per_frame_iou(pred, target).tolist()
     return float(np.mean(ious)) if ious else float("nan")
 
 
@@ -95,7 +94,7 @@ def run(cfg: DictConfig) -> float:
         return pooled
     if best:
         module = SegmentationModule.load_from_checkpoint(best, map_location="cpu")
-    iou = per_frame_iou(module.cpu(), data.val_dataloader())
+    iou = mean_frame_iou(module.cpu(), data.val_dataloader())
     log.info("best checkpoint %s; val IoU over pooled pixels %.3f", best or "(none)", pooled)
     print(f"val/iou={iou:.3f}")
     return iou
