@@ -8,7 +8,11 @@
 (``T_cam_base``: base frame → left optical frame, metres, 4×4 row-major),
 ``DIR/overlays/*.png`` (estimate tinted green, segmentation outlined red) and, with
 ``write_recording=true``, ``DIR/<stem>_registered.mcap``: the recording with the estimate in
-``/tf_static``. Prints the pose.yaml path.
+``/tf_static``. With ``self_training.rounds=N`` (N > 0) a segmenter is fine-tuned on the
+recording's own frames labelled by the estimate and the robot registered again from it, up to N
+times (:mod:`roboseg.registration.self_training`); pose.yaml then lists every round under
+``self_training`` and ``DIR/self_trained.ckpt`` holds the kept round's model. Prints the pose.yaml
+path.
 """
 
 from __future__ import annotations
@@ -283,6 +287,31 @@ def segmentor_from_cfg(cfg: DictConfig) -> Segmentor:
         raise SegmentationError(f"{section}: invalid setting ({exc})") from exc
 
 
+def self_training_from_cfg(cfg: DictConfig) -> tuple[Any, bool] | None:
+    """``(SelfTrainingConfig, save_checkpoint)`` from the ``self_training`` section, or None when
+    it is absent or ``rounds`` is 0 (then the training stack is not even imported)."""
+    section = cfg.get("self_training")
+    if section is None or section.get("rounds", 0) == 0:
+        return None
+    from roboseg.registration.self_training import SelfTrainingConfig, SelfTrainingError
+
+    opts = OmegaConf.to_container(section, resolve=True)
+    assert isinstance(opts, dict)
+    save = bool(opts.pop("save_checkpoint", True))
+    for key in ("image_size", "decoder_channels"):
+        if isinstance(opts.get(key), list):
+            opts[key] = tuple(opts[key])
+    augment = opts.get("augment")
+    if augment is not None and not isinstance(augment, dict):
+        raise SelfTrainingError(
+            f"self_training.augment must be null or an augmentation config, got {augment!r}"
+        )
+    try:
+        return SelfTrainingConfig(**opts), save
+    except TypeError as exc:
+        raise SelfTrainingError(f"self_training: invalid setting ({exc})") from exc
+
+
 @user_errors_exit
 def run(cfg: DictConfig) -> Path:
     """Register as ``cfg`` says; write the outputs; return the pose.yaml path."""
@@ -296,7 +325,9 @@ def run(cfg: DictConfig) -> Path:
     if urdf is not None and not Path(str(urdf)).is_file():
         raise RobosegError(f"robot.urdf: no such file {urdf}")
     reg_cfg = config_from_cfg(cfg)
+    self_training = self_training_from_cfg(cfg)
     kind = str(cfg.get("segmentor") or "model")
+    note = None
     if kind == "model":
         if cfg.model_file is None:
             raise ModelFileError(
@@ -311,7 +342,6 @@ def run(cfg: DictConfig) -> Path:
         described: dict[str, Any] = {"kind": "model"}
     else:
         seg = segmentor_from_cfg(cfg)
-        note = None
         if reg_cfg.method == "sdr_prior":
             note = f"method=sdr_prior needs segmentor=model; segmentor={kind} used method=sdr"
             log.warning("%s", note)
@@ -327,7 +357,21 @@ def run(cfg: DictConfig) -> Path:
             reg.warnings.insert(0, note)
         model, described = None, seg.describe()
     out = Path(str(cfg.out))
+    rounds = None
+    if self_training is not None:
+        from roboseg.registration.self_training import self_train
+
+        st_cfg, save_model = self_training
+        trained = self_train(recording, robot, reg, reg_cfg, st_cfg, described)
+        reg, rounds = trained.registration, trained.rounds
+        if note and note not in reg.warnings:
+            reg.warnings.insert(0, note)
+        ckpt = trained.save_checkpoint(out / "self_trained.ckpt") if save_model else None
+        if ckpt is not None:
+            log.info("wrote %s (round %d's model)", ckpt, trained.kept)
     doc = pose_document(reg, str(recording.resolve()), model, described)
+    if rounds is not None:
+        doc["self_training"] = rounds
     pose_path = save_pose_yaml(doc, out / "pose.yaml")
     write_overlays(reg, robot, out / "overlays")
     if bool(cfg.write_recording):
