@@ -10,6 +10,8 @@ thin do not bias the depth: ``SDRConfig.boundary_offset``);
 SDR; :func:`register` drives it all on a recording. When the masks show several robots, each
 is fitted on the pixels near its own estimate, and fitted again without another robot's pixels
 when that robot's joints explain its first fit better (``RegisterConfig.other_robots_margin``).
+:mod:`roboseg.registration.self_training` (imported on its own, as it needs the training stack)
+fine-tunes a segmenter on the recording's frames labelled by an estimate and registers again.
 """
 
 from roboseg.registration.cso import Candidate, CSOConfig, CSOResult, cso
