@@ -316,3 +316,28 @@ def test_per_frame_iou_hand_values():
     target[1, 0, 1, 0] = True  # nothing predicted → 0
     # frame 2: both empty → 1 (a frame without robot predicted empty is right)
     assert per_frame_iou(pred, target).tolist() == pytest.approx([1 / 3, 0.0, 1.0])
+
+
+def test_channels_last_bf16_training_learns_and_exports_in_the_usual_layout(tmp_path):
+    """The CPU fast path (NHWC + bf16 autocast): the loss still falls, the loss is float32, and
+    after fit the weights are back in the contiguous layout the exporter and runtime expect."""
+    rec = Recorder()
+    module = small_module(channels_last=True)
+    seen: dict[str, object] = {}
+
+    class Probe(pl.Callback):
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+            seen["input_nhwc"] = batch["input"].is_contiguous(memory_format=torch.channels_last)
+            seen["weights_nhwc"] = pl_module.net.encoder.conv1.weight.is_contiguous(
+                memory_format=torch.channels_last)
+
+        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+            seen["loss_dtype"] = outputs["loss"].dtype
+
+    t = trainer(tmp_path, 30, [rec, Probe()], precision="bf16-mixed", limit_val_batches=0)
+    t.fit(module, datamodule=SquaresData())
+    assert seen == {"input_nhwc": True, "weights_nhwc": True, "loss_dtype": torch.float32}
+    first, last = sum(rec.losses[:5]) / 5, sum(rec.losses[-5:]) / 5
+    assert last < 0.7 * first, (first, last)
+    weight = module.net.encoder.conv1.weight
+    assert weight.is_contiguous() and not weight.is_contiguous(memory_format=torch.channels_last)

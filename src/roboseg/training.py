@@ -115,7 +115,10 @@ class SegmentationModule(pl.LightningModule):
     ``image_size``: model input ``[H, W]`` pixels; ``mean`` / ``std``: RGB normalisation;
     ``threshold``: probability above which a pixel is robot; ``dataset``: subset name (medium,
     large, ...); ``seed``: augmentation seed (plus the DDP rank); ``lr_schedule`` /
-    ``warmup_steps``: see :func:`lr_factor` (the paper's recipe: constant, no warm-up).
+    ``warmup_steps``: see :func:`lr_factor` (the paper's recipe: constant, no warm-up);
+    ``channels_last``: train and validate in NHWC memory layout (oneDNN's fast path on CPU: ~1.6x
+    a step for the CNN presets; the weights are saved and exported in the usual layout). Under
+    ``trainer.precision=bf16-mixed`` the loss is still computed in float32.
     """
 
     def __init__(
@@ -133,6 +136,7 @@ class SegmentationModule(pl.LightningModule):
         seed: int = 0,
         lr_schedule: str = "constant",
         warmup_steps: int = 0,
+        channels_last: bool = False,
     ) -> None:
         super().__init__()
         model = dict(_plain(model) or {"name": "unet_mit_b0"})
@@ -166,6 +170,7 @@ class SegmentationModule(pl.LightningModule):
                 "seed": int(seed),
                 "lr_schedule": str(lr_schedule),
                 "warmup_steps": int(warmup_steps),
+                "channels_last": bool(channels_last),
             }
         )
         self.net = build_unet(
@@ -210,6 +215,13 @@ class SegmentationModule(pl.LightningModule):
         if self.augment is not None:
             self.augment.reseed(self.hparams.seed + self.global_rank)
 
+    def on_fit_start(self) -> None:
+        if self.hparams.get("channels_last", False):
+            self.net.to(memory_format=torch.channels_last)
+
+    def on_fit_end(self) -> None:
+        self.net.to(memory_format=torch.contiguous_format)  # export and inference as usual
+
     def on_after_batch_transfer(self, batch: Batch, dataloader_idx: int) -> Batch:
         """Augment (training only), then add ``input`` and ``target`` to the batch dict."""
         bad = ~torch.isfinite(batch["image"]).flatten(1).all(1)
@@ -224,6 +236,8 @@ class SegmentationModule(pl.LightningModule):
         batch["input"], batch["target"] = prepare(
             batch, self.hparams.mean, self.hparams.std, self.in_channels
         )
+        if self.hparams.get("channels_last", False):
+            batch["input"] = batch["input"].contiguous(memory_format=torch.channels_last)
         return batch
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -235,7 +249,7 @@ class SegmentationModule(pl.LightningModule):
     def _shared_step(self, batch: Batch, stage: str, iou: BinaryJaccardIndex) -> torch.Tensor:
         if "input" not in batch:  # called outside a Trainer
             batch = self.on_after_batch_transfer(batch, 0)
-        logits = self(batch["input"])
+        logits = self(batch["input"]).float()  # the loss in float32, also under bf16-mixed
         target = batch["target"]
         loss = self.loss_fn(logits, target)
         probs, n = torch.sigmoid(logits.detach()), target.shape[0]
