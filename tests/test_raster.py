@@ -268,3 +268,78 @@ def test_back_face_culling_keeps_closed_meshes_and_drops_faces_turned_away() -> 
     front, back = torch.tensor([[0, 1, 2]]), torch.tensor([[0, 2, 1]])
     assert rasterize(tri, front, torch.eye(3), 8, 8, cull_back_faces=True).mask.sum() == 15
     assert not render_hard(tri, back, torch.eye(3), 8, 8, cull_back_faces=True).any()
+
+
+def _scenes() -> list[tuple[str, torch.Tensor, torch.Tensor, torch.Tensor, int, int]]:
+    """(name, vertices [B, V, 3] camera frame, faces, K, height, width) that reach every path of
+    the rasteriser: full robots near and far (one to many rows per triangle: row levels and
+    tall triangles), partly off-screen and crossing the near plane, rows of a quad exactly on
+    pixel rows (horizontal edges), degenerate faces and a vertex projecting to infinity."""
+    from roboseg.robot import load_robot
+
+    robot = load_robot(None)  # built-in arm, full mesh
+    g = torch.Generator().manual_seed(11)
+    q = robot.random_joints(3, generator=g)
+    verts = robot.posed_vertices(q).double()
+    centre = torch.tensor([0.1, 0.0, 0.5], dtype=torch.float64)
+    eyes = centre + torch.tensor([[2.4, 0.5, 0.6], [0.9, -0.7, 0.3], [0.35, 0.2, 0.1]])
+    T = look_at(eyes.double(), centre.expand(3, 3), torch.tensor([0.0, 0.0, 1.0]).double())
+    arm = (verts @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]).float()
+    K = torch.tensor([[70.0, 0.0, 59.5], [0.0, 70.0, 44.5], [0.0, 0.0, 1.0]])
+    quads = torch.stack([_quad(2.0, 0.5), _quad(1.0, 0.3, (0.2, -0.1))])
+    odd = torch.tensor(  # a degenerate face, a face crossing z_near, one vertex at +inf in u
+        [[[0.0, 0.0, 1.0], [0.2, 0.2, 1.0], [0.4, 0.4, 1.0], [3e38, 0.1, 1.0], [0.1, 0.3, 1.0],
+          [-0.2, 0.1, 0.005]]]
+    )
+    odd_faces = torch.tensor([[0, 1, 2], [0, 3, 4], [1, 4, 5], [0, 4, 1]])
+    Kq = torch.tensor([[10.0, 0.0, 4.5], [0.0, 10.0, 4.5], [0.0, 0.0, 1.0]])
+    return [
+        ("arm", arm, robot.faces, K, 90, 120),
+        ("arm float64", arm.double(), robot.faces, K.double(), 37, 51),
+        ("quads", quads, QUAD_FACES, Kq, 10, 10),
+        ("odd", odd, odd_faces, Kq, 10, 10),
+    ]
+
+
+@pytest.mark.parametrize("cull", [False, True])
+def test_same_pixels_as_the_reference_rasteriser_bit_for_bit(cull: bool) -> None:
+    """The branch-free set-up and the row levels change how the spans are computed, not what
+    they are: silhouettes, depths and face ids equal those of the previous implementation."""
+    import raster_reference as ref
+
+    for name, verts, faces, K, h, w in _scenes():
+        hard = render_hard(verts, faces, K, h, w, cull_back_faces=cull)
+        r = rasterize(verts, faces, K, h, w, cull_back_faces=cull)
+        depth, face_id = ref.rasterize(verts, faces, K, h, w, cull_back_faces=cull)
+        assert torch.equal(hard, ref.render_hard(verts, faces, K, h, w, cull_back_faces=cull)), name
+        assert torch.equal(r.depth, depth), name
+        assert torch.equal(r.face_id, face_id), name
+        assert torch.equal(hard, r.mask), name
+
+
+def test_edge_table_takes_the_selecting_path_for_non_finite_edges(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    paths: list[bool] = []
+    edge_table = raster._edge_table
+
+    def spy(*args: torch.Tensor) -> tuple[torch.Tensor, bool]:
+        table, finite = edge_table(*args)
+        paths.append(finite)
+        return table, finite
+
+    monkeypatch.setattr(raster, "_edge_table", spy)
+    scenes = {name: s for name, *s in _scenes()}
+    verts, faces, K, h, w = scenes["odd"]
+    render_hard(verts, faces, K, h, w)
+    verts, faces, K, h, w = scenes["quads"]
+    render_hard(verts, faces, K, h, w)
+    assert paths == [False, True]
+
+
+def test_row_levels_cover_what_at_least_half_of_the_triangles_reach() -> None:
+    levels = raster._dense_levels
+    assert levels(torch.tensor([1, 1, 1, 1])) == 1
+    assert levels(torch.tensor([2, 2, 1, 1])) == 2  # half have a second row
+    assert levels(torch.tensor([3, 2, 1, 1])) == 2  # a quarter have a third
+    assert levels(torch.tensor([40, 30, 20, 10])) == raster.MAX_LEVELS

@@ -17,6 +17,7 @@ spans, so their silhouettes are identical.
 
 from __future__ import annotations
 
+import math
 import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -49,10 +50,11 @@ class _Triangles:
     """Triangles that survived culling, set up for scanline spans (vertices' dtype, pixels)."""
 
     view: torch.Tensor  # [T] int64 view index in the whole batch
-    face: torch.Tensor  # [T] int64 face index
+    face: torch.Tensor | None  # [T] int64 face index (with depth only)
     row0: torch.Tensor  # [T] int64 first pixel row (inside the image)
     rows: torch.Tensor  # [T] int64 number of pixel rows (>= 1)
     edges: torch.Tensor  # [12, T] float, see :func:`_edge_table`
+    finite: bool  # every start and slope of ``edges`` is finite (unused slots aside)
     depth: torch.Tensor | None  # [5, T] (u0, v0, 1/z0, d(1/z)/du, d(1/z)/dv) or None
     first_view: int  # views first_view ... first_view + views - 1 are set up here
     views: int
@@ -97,7 +99,7 @@ def rasterize(
     device = verts_cam.device
     buffer = torch.full((B * height * width,), _EMPTY_KEY, dtype=torch.int64, device=device)
     for tris in _triangle_chunks(verts_cam, faces, K, height, width, z_near, True, cull_back_faces):
-        assert tris.depth is not None
+        assert tris.depth is not None and tris.face is not None
         for spans in _span_chunks(tris, width):
             # per span: flat index, 1/z at its first pixel and d(1/z)/du; face in the low word
             d = tris.depth.index_select(1, spans.tri)  # [5, S]
@@ -132,9 +134,10 @@ def render_hard(
 
     Every span adds +1 at its first column and -1 after its last one in a [B, rows, W + 1]
     difference image (the rows the triangles cross); a pixel is covered iff the running sum
-    along its row is positive. The running sum is only taken inside the box of rows and
-    columns the spans touch (outside it the difference image is zero), which is most of the
-    work saved for small silhouettes.
+    along its row is positive. Empty spans (and the rows a triangle does not have, see
+    :func:`_span_bounds`) add their +1 and -1 at the same place, so no span is filtered out.
+    The running sum is only taken inside the box of rows and columns the spans touch (outside
+    it the difference image is zero), which is most of the work saved for small silhouettes.
     """
     verts_cam, faces, K = _check_inputs(verts_cam, faces, K, height, width, z_near)
     B = verts_cam.shape[0]
@@ -147,24 +150,30 @@ def render_hard(
         # the difference image of this chunk's views spans only the rows its triangles cross
         top, bottom = torch.stack([tris.row0.min(), (tris.row0 + tris.rows).max()]).tolist()
         rows = bottom - top
-        diff = torch.zeros(tris.views, rows, stride, dtype=torch.int32, device=device)
-        flat = diff.view(-1)
-        lows, highs = [], []  # (row, column) bounds of the spans of each chunk
-        for spans in _span_chunks(tris, width):
-            view = tris.view.index_select(0, spans.tri) - tris.first_view
-            start = (view * rows + spans.row - top) * stride + spans.u0
-            ones = torch.ones_like(start, dtype=torch.int32)
-            flat.index_add_(0, start, ones)
-            flat.index_add_(0, start + (spans.u1 - spans.u0 + 1), -ones)
-            lows.append(torch.stack([spans.row.min(), spans.u0.min()]))
-            highs.append(torch.stack([spans.row.max(), spans.u1.max()]))
-        if not lows:
+        diff = torch.zeros(tris.views * rows * stride, dtype=torch.int32, device=device)
+        # flat index of column 0 of each triangle's first row
+        first = ((tris.view - tris.first_view) * rows + tris.row0 - top) * stride
+        lows, highs = [], []  # column bounds of the spans of each block
+        for b in _span_bounds(tris, width):
+            at = first if b.tri is None else first.index_select(0, b.tri)
+            at = at + b.dv * stride
+            start = at + b.u0
+            end = at + torch.maximum(b.u1 + 1, b.u0)
+            if b.valid is not None:  # a row the triangle lacks: +1 and -1 both at 0
+                start.mul_(b.valid)
+                end.mul_(b.valid)
+            ones = torch.ones(start.shape, dtype=torch.int32, device=device)
+            diff.index_add_(0, start, ones)
+            diff.index_add_(0, end, ones.neg_())
+            lows.append(b.u0.min())
+            highs.append(b.u1.max())
+        c0 = int(torch.stack(lows).min())
+        c1 = int(torch.stack(highs).max())
+        if c1 < c0:
             continue
-        r0, c0 = torch.stack(lows).amin(dim=0).tolist()
-        r1, c1 = torch.stack(highs).amax(dim=0).tolist()
         v0, v1 = tris.first_view, tris.first_view + tris.views
-        block = diff[:, r0 - top : r1 - top + 1, c0 : c1 + 1]
-        covered[v0:v1, r0 : r1 + 1, c0 : c1 + 1] = block.cumsum(dim=2, dtype=torch.int32) > 0
+        block = diff.view(tris.views, rows, stride)[:, :, c0 : c1 + 1]
+        covered[v0:v1, top:bottom, c0 : c1 + 1] = block.cumsum(dim=2, dtype=torch.int32) > 0
     return covered
 
 
@@ -218,20 +227,22 @@ def _triangle_chunks(
     B, F = verts_cam.shape[0], faces.shape[0]
     if F == 0:
         return
-    corners = torch.stack(faces.unbind(1))  # [3, F] vertex of each face's first, second, third
+    corners = faces.t()  # [3, F] vertex of each face's first, second, third corner
     views = max(1, TRIANGLE_CHUNK // F)
     for b0 in range(0, B, views):
         b1 = min(B, b0 + views)
         v = verts_cam[b0:b1]
         uv = project(v, K[b0:b1]).movedim(-1, 0)  # [2, b, V]
-        uvz = torch.cat([uv, v[..., 2].unsqueeze(0)])  # [3, b, V] rows u, v, z
-        tris = _setup(uvz, corners, b0, height, width, z_near, with_depth, cull_back_faces)
+        tris = _setup(
+            uv, v[..., 2], corners, b0, height, width, z_near, with_depth, cull_back_faces
+        )
         if tris is not None:
             yield tris
 
 
 def _setup(
-    uvz: torch.Tensor,
+    uv: torch.Tensor,
+    z: torch.Tensor,
     corners: torch.Tensor,
     first_view: int,
     height: int,
@@ -240,102 +251,193 @@ def _setup(
     with_depth: bool,
     cull_back_faces: bool,
 ) -> _Triangles | None:
-    """Cull the triangles ``corners`` [3, F] (vertex indices) of views ``uvz`` [(u, v, z), b, V]
-    and set up their edges.
+    """Cull the triangles ``corners`` [3, F] (vertex indices) of views with projected vertices
+    ``uv`` [(u, v), b, V] (pixels) and camera-frame depths ``z`` [b, V] (metres), and set up
+    their edges.
 
     A triangle survives iff its pixel-centre bounds ceil(min) <= floor(max) meet the image on
     both axes, all its corners have z >= z_near, and it is not degenerate (|2·area| <= 1e-9
     px²); with ``cull_back_faces`` also iff its image-space area is negative: with every
     z > 0, sign(2·area) = sign(a · ((b - a) × (c - a))) for the camera-frame corners a, b, c.
     Every decision is taken on all (view, face) pairs at once from per-corner coordinates
-    gathered row-wise ([k, n] tensors gather fast along dim 1); survivors are compacted once.
+    gathered row-wise into one table ([k, n] tensors gather fast along dim 1); survivors are
+    compacted once. Depths are gathered per corner only for the z-buffer; the silhouette tests
+    z >= z_near per vertex and gathers the flags only when a vertex fails it.
     """
-    _, nb, V = uvz.shape
+    _, nb, V = uv.shape
     F = corners.shape[1]
     n = nb * F  # (view, face) pairs, view-major
-    base = torch.arange(nb, device=uvz.device) * V
-    vert = (corners[:, None, :] + base[None, :, None]).view(-1)  # [corner, view, face]
-    x, y, z = uvz.reshape(3, nb * V).index_select(1, vert).view(3, 3, n).unbind(0)  # [corner, n]
-    x0, x1, x2 = x.unbind(0)
-    y0, y1, y2 = y.unbind(0)
-    area2 = (x1 - x0) * (y2 - y0) - (y1 - y0) * (x2 - x0)  # twice the signed area
-    lo_v = torch.ceil(torch.minimum(torch.minimum(y0, y1), y2))
-    hi_v = torch.floor(torch.maximum(torch.maximum(y0, y1), y2))
+    base = torch.arange(nb, device=uv.device, dtype=corners.dtype) * V
+    vert = torch.empty(3, nb, F, dtype=corners.dtype, device=uv.device)  # [corner, view, face]
+    vert = torch.add(corners[:, None, :], base[None, :, None], out=vert).view(-1)
+    k = 3 if with_depth else 2  # gathered coordinates: u, v (, z)
+    coords = torch.cat([uv, z[None]]) if with_depth else uv
+    # rows: u of corners 0-2, v of corners 0-2 (, z of corners 0-2), area2, lo_v, hi_v
+    table = torch.empty(3 * k + 3, n, dtype=uv.dtype, device=uv.device)
+    torch.index_select(coords.reshape(k, nb * V), 1, vert, out=table[: 3 * k].view(k, 3 * n))
+    x0, x1, x2, y0, y1, y2 = table[:6].unbind(0)
+    area2, lo_v, hi_v = table[3 * k :].unbind(0)
+    torch.sub((x1 - x0) * (y2 - y0), (y1 - y0) * (x2 - x0), out=area2)  # twice the signed area
+    torch.ceil(torch.minimum(torch.minimum(y0, y1), y2), out=lo_v)
+    torch.floor(torch.maximum(torch.maximum(y0, y1), y2), out=hi_v)
     lo_u = torch.ceil(torch.minimum(torch.minimum(x0, x1), x2))
     hi_u = torch.floor(torch.maximum(torch.maximum(x0, x1), x2))
-    keep = lo_u.clamp_min(0) <= hi_u.clamp_max(width - 1)
-    keep &= lo_v.clamp_min(0) <= hi_v.clamp_max(height - 1)
+    keep = lo_u.clamp_min_(0) <= hi_u.clamp_max_(width - 1)
+    keep &= lo_v.clamp_min_(0) <= hi_v.clamp_max_(height - 1)  # the rows, clamped to the image
     keep &= area2.abs() > 1e-9
-    keep &= (z >= z_near).all(dim=0)
+    if with_depth:
+        keep &= (table[6:9] >= z_near).all(dim=0)
+    else:
+        far = z >= z_near
+        if not bool(far.all()):
+            keep &= far.reshape(-1).index_select(0, vert).view(3, n).all(dim=0)
     if cull_back_faces:
         keep &= area2 < 0
     idx = keep.nonzero().squeeze(1)
     if idx.numel() == 0:
         return None
-    parts = [x, y, z] if with_depth else [x, y]
-    table = torch.cat([*parts, area2[None], lo_v[None], hi_v[None]]).index_select(1, idx)
-    x, y, z, (area2, lo_v, hi_v) = _split(table, 3 * len(parts))
-    row0 = lo_v.clamp_(min=0).to(torch.int64)
-    row1 = hi_v.clamp_(max=height - 1).to(torch.int64)
-    b = torch.div(idx, F, rounding_mode="floor")
-    f = idx - b * F
-    xj, yj = x.roll(-1, dims=0), y.roll(-1, dims=0)  # start of edge j -> k: 1 -> 2, 2 -> 0, 0 -> 1
-    dx, dy = x.roll(-2, dims=0) - xj, y.roll(-2, dims=0) - yj  # [3, T]
-    edges = _edge_table(xj, yj, dx, dy, area2, row0)
-    depth = None
+    table = table.index_select(1, idx)
+    x, y = table[0:3], table[3:6]
+    area2, lo_v, hi_v = table[3 * k :].unbind(0)
+    row0 = lo_v.to(torch.int64)
+    rows = hi_v.to(torch.int64) - row0 + 1
+    view = _view_of(idx, F, nb)  # idx is sorted: views are runs
+    dx, dy = _extents(x), _extents(y)
+    edges, finite = _edge_table(x, y, dx, dy, area2, row0)
+    face, depth = None, None
     if with_depth:
-        assert z is not None
+        z = table[6:9]
+        face = idx - view * F
         # 1/z = sum_i l_i / z_i with barycentrics l_i = E_i / (2·area): affine in (u, v)
         w = 1.0 / (z * area2)  # [3, T]
         d_du = -(dy * w).sum(dim=0)
         d_dv = (dx * w).sum(dim=0)
         depth = torch.stack([x[0], y[0], 1.0 / z[0], d_du, d_dv])
-    return _Triangles(b + first_view, f, row0, row1 - row0 + 1, edges, depth, first_view, nb)
+    return _Triangles(view + first_view, face, row0, rows, edges, finite, depth, first_view, nb)
 
 
-def _split(
-    table: torch.Tensor, rows: int
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor]:
-    """(x [3, T], y [3, T], z [3, T] or None, [area2, lo_v, hi_v] [3, T]) of a compacted table
-    whose first ``rows`` rows are x, y (and z), followed by area2, lo_v and hi_v."""
-    x, y = table[0:3], table[3:6]
-    z = table[6:9] if rows == 9 else None
-    return x, y, z, table[rows:]
+def _view_of(idx: torch.Tensor, faces: int, views: int) -> torch.Tensor:
+    """View (0 ... ``views`` - 1) of each sorted view-major pair index ``idx`` (int64)."""
+    if views == 1:
+        return torch.zeros_like(idx)
+    ends = torch.searchsorted(idx, torch.arange(1, views + 1, device=idx.device) * faces)
+    counts = torch.diff(ends, prepend=ends.new_zeros(1))
+    return torch.repeat_interleave(
+        torch.arange(views, device=idx.device), counts, output_size=idx.numel()
+    )
+
+
+@dataclass
+class _Bounds:
+    """Span bounds ``u0 <= u <= u1`` (int64, empty where u0 > u1) of a block of (triangle, row)
+    pairs: row ``row0 + dv`` of triangle ``tri`` (None: every triangle of the chunk, in order,
+    with a scalar ``dv``), pairs with ``valid`` False (the triangle has no such row) ignored."""
+
+    tri: torch.Tensor | None
+    dv: int | torch.Tensor
+    u0: torch.Tensor
+    u1: torch.Tensor
+    valid: torch.Tensor | None
+
+
+#: At most this many row levels are evaluated for every triangle at once (see _span_bounds).
+MAX_LEVELS = 8
+
+
+def _span_bounds(tris: _Triangles, width: int) -> Iterator[_Bounds]:
+    """Bounds of the spans of every row of every triangle.
+
+    The first rows of all triangles are evaluated level by level over the whole edge table
+    (level d: row ``row0 + d`` of every triangle; no gathers), as long as at least half of the
+    triangles have that row; the remaining rows of the taller triangles are enumerated as
+    (triangle, row) pairs, at most :data:`PAIR_CHUNK` at a time. Either way a row's bounds are
+    ``max_j(left_j + d·dleft_j)`` and ``min_j(right_j + d·dright_j)`` (see
+    :func:`_edge_table`), computed with the same float operations.
+    """
+    e, rows = tris.edges, tris.rows
+    levels = _dense_levels(rows)
+    for d in range(levels):
+        if d == 0 and tris.finite:  # + finite slope·0 is + ±0: the same columns
+            left = torch.maximum(torch.maximum(e[0], e[1]), e[2])
+            right = torch.minimum(torch.minimum(e[6], e[7]), e[8])
+        else:
+            left = torch.maximum(
+                torch.maximum(e[0] + e[3] * d, e[1] + e[4] * d), e[2] + e[5] * d
+            )
+            right = torch.minimum(
+                torch.minimum(e[6] + e[9] * d, e[7] + e[10] * d), e[8] + e[11] * d
+            )
+        u0, u1 = _columns(left, right, width)
+        yield _Bounds(None, d, u0, u1, None if d == 0 else rows > d)
+    tall = (rows > levels).nonzero().squeeze(1)
+    if tall.numel() == 0:
+        return
+    for i, off in _pixel_chunks(rows.index_select(0, tall) - levels):
+        t = tall.index_select(0, i)
+        et = e.index_select(1, t)  # [12, P]
+        dv = off + levels
+        dv_f = dv.to(et.dtype)
+        left = torch.maximum(
+            torch.maximum(et[0] + et[3] * dv_f, et[1] + et[4] * dv_f), et[2] + et[5] * dv_f
+        )
+        right = torch.minimum(
+            torch.minimum(et[6] + et[9] * dv_f, et[7] + et[10] * dv_f), et[8] + et[11] * dv_f
+        )
+        u0, u1 = _columns(left, right, width)
+        yield _Bounds(t, dv, u0, u1, None)
+
+
+def _dense_levels(rows: torch.Tensor) -> int:
+    """Row levels worth evaluating for every triangle: 1 + the levels d >= 1 that at least
+    half of the triangles reach (``rows > d``), at most :data:`MAX_LEVELS`."""
+    hist = torch.bincount(rows.clamp(max=MAX_LEVELS + 1), minlength=MAX_LEVELS + 2)
+    taller = rows.numel() - hist.cumsum(0)  # taller[d]: triangles with rows > d
+    return 1 + int((taller[1:MAX_LEVELS] * 2 >= rows.numel()).cumprod(0).sum())
+
+
+def _columns(left: torch.Tensor, right: torch.Tensor, width: int) -> tuple[torch.Tensor, ...]:
+    """First and last covered column (int64) of rows bounded by ``left <= u <= right``."""
+    u0 = torch.ceil(left.clamp_(-1.0, width)).to(torch.int64).clamp_(min=0)
+    u1 = torch.floor(right.clamp_(-1.0, width)).to(torch.int64).clamp_(max=width - 1)
+    return u0, u1
 
 
 def _span_chunks(tris: _Triangles, width: int) -> Iterator[_Spans]:
-    """Non-empty spans of every row of every triangle, at most :data:`PAIR_CHUNK` rows at a
-    time (a triangle with more rows forms its own chunk)."""
-    for t, dv in _pixel_chunks(tris.rows):
-        e = tris.edges.index_select(1, t)  # [12, P]
-        dv_f = dv.to(e.dtype)
-        left = torch.maximum(
-            torch.maximum(e[0] + e[3] * dv_f, e[1] + e[4] * dv_f), e[2] + e[5] * dv_f
-        )
-        right = torch.minimum(
-            torch.minimum(e[6] + e[9] * dv_f, e[7] + e[10] * dv_f), e[8] + e[11] * dv_f
-        )
-        u0 = torch.ceil(left.clamp_(-1.0, width)).to(torch.int64).clamp_(min=0)
-        u1 = torch.floor(right.clamp_(-1.0, width)).to(torch.int64).clamp_(max=width - 1)
-        keep = (u0 <= u1).nonzero().squeeze(1)
+    """Non-empty spans of every row of every triangle (:func:`_span_bounds`, compacted)."""
+    for b in _span_bounds(tris, width):
+        ok = b.u0 <= b.u1
+        if b.valid is not None:
+            ok &= b.valid
+        keep = ok.nonzero().squeeze(1)
         if keep.numel() == 0:
             continue
-        if keep.numel() < t.numel():
-            t, dv, u0, u1 = (a.index_select(0, keep) for a in (t, dv, u0, u1))
+        t = keep if b.tri is None else b.tri.index_select(0, keep)
+        dv = b.dv if isinstance(b.dv, int) else b.dv.index_select(0, keep)
+        u0, u1 = b.u0.index_select(0, keep), b.u1.index_select(0, keep)
         yield _Spans(t, tris.row0.index_select(0, t) + dv, u0, u1)
 
 
+def _extents(c: torch.Tensor) -> torch.Tensor:
+    """[3, T] extents c_k - c_j of the edges j -> k (1 -> 2, 2 -> 0, 0 -> 1) of corner
+    coordinates ``c`` [3, T]."""
+    out = torch.empty_like(c)
+    for j, (a, b) in enumerate(((1, 2), (2, 0), (0, 1))):
+        torch.sub(c[b], c[a], out=out[j])
+    return out
+
+
 def _edge_table(
-    xj: torch.Tensor,
-    yj: torch.Tensor,
+    x: torch.Tensor,
+    y: torch.Tensor,
     dx: torch.Tensor,
     dy: torch.Tensor,
     area2: torch.Tensor,
     row0: torch.Tensor,
-) -> torch.Tensor:
+) -> tuple[torch.Tensor, bool]:
     """[12, T] per-triangle table of the bounds of the spans, in pixels: (left u at ``row0``
-    [3], left du/dv [3], right u at ``row0`` [3], right du/dv [3]) of the edges j -> k starting
-    at (xj, yj) [3, T] with extent (dx, dy) [3, T], so that a row ``row0 + dv`` spans
+    [3], left du/dv [3], right u at ``row0`` [3], right du/dv [3]) of the edges j -> k
+    (1 -> 2, 2 -> 0, 0 -> 1) of the corners (x, y) [3, T], starting at (xj, yj) with extent
+    (dx, dy) [3, T] (:func:`_extents`), so that a row ``row0 + dv`` spans
     ``max(left + dv·dleft) <= u <= min(right + dv·dright)``.
 
     A centre is inside edge j -> k iff E = dx·(v - yj) - dy·(u - xj) has the sign of the
@@ -343,22 +445,60 @@ def _edge_table(
     left where dy·area2 < 0 and on the right where dy·area2 > 0. Horizontal edges bound no
     span (the rows already stop at the triangle's top and bottom); unused slots hold -inf on
     the left, +inf on the right, with slope 0.
+
+    The slots are filled without data-dependent branches (``torch.where`` on a random mask
+    costs a mispredicted branch per element) from the signs of dy and dy·area2: with finite
+    starts, slopes and areas, ``min(start, ±inf)`` and ``slope·flag`` (flag 1.0 or 0.0) give the
+    same values as selecting them (an unused slope may be -0 instead of 0, which leaves -inf /
+    +inf unchanged). Non-finite values, which only arise from non-finite, huge or nearly
+    coincident vertices, take the selecting path; the second value says which path was taken
+    (True: every start and slope is finite).
     """
+    sloped = torch.sign(dy).abs_()  # 1.0 on edges with dy != 0, 0.0 on horizontal ones
+    slope = dx / (dy + (1.0 - sloped))  # dy + 0 is dy; dy + 1 on horizontal edges
+    slope.mul_(sloped)  # ±0 on horizontal edges
+    start = _starts(x, y, slope, row0)
+    turn = dy * area2
+    table = torch.empty((12, *start.shape[1:]), dtype=start.dtype, device=start.device)
+    # a sum is finite iff every term is (or, rarely, it overflows: then the selecting path)
+    if all(math.isfinite(float(t.sum())) for t in (start, slope, area2)):
+        inf = torch.tensor(torch.inf, dtype=start.dtype, device=start.device)
+        right = torch.sign(turn)  # -1 left edge, +1 right edge, 0 neither
+        left = torch.neg(right).clamp_(min=0.0)  # 1.0 on left edges, 0.0 elsewhere
+        right.clamp_(min=0.0)  # 1.0 on right edges, 0.0 elsewhere
+        torch.minimum(start, torch.copysign(inf, left - 0.5), out=table[0:3])  # else -inf
+        torch.mul(slope, left, out=table[3:6])
+        torch.maximum(start, torch.copysign(inf, 0.5 - right), out=table[6:9])  # else +inf
+        torch.mul(slope, right, out=table[9:12])
+        return table, True
     flat = dy == 0
     slope = torch.where(flat, torch.zeros_like(dx), dx / torch.where(flat, 1.0, dy))
-    start = xj + slope * (row0.to(xj.dtype) - yj)
-    turn = dy * area2
-    left, right = turn < 0, turn > 0
+    start = _starts(x, y, slope, row0)
+    on_left, on_right = turn < 0, turn > 0
     zero = torch.zeros_like(start)
-    return torch.cat(
+    torch.cat(
         [
-            torch.where(left, start, -torch.inf),
-            torch.where(left, slope, zero),
-            torch.where(right, start, torch.inf),
-            torch.where(right, slope, zero),
+            torch.where(on_left, start, -torch.inf),
+            torch.where(on_left, slope, zero),
+            torch.where(on_right, start, torch.inf),
+            torch.where(on_right, slope, zero),
         ],
         dim=0,
+        out=table,
     )
+    return table, False
+
+
+def _starts(
+    x: torch.Tensor, y: torch.Tensor, slope: torch.Tensor, row0: torch.Tensor
+) -> torch.Tensor:
+    """[3, T] u of the edges j -> k (1 -> 2, 2 -> 0, 0 -> 1) at row ``row0``:
+    xj + slope·(row0 - yj)."""
+    r = row0.to(x.dtype)
+    out = torch.empty_like(slope)
+    for k, j in enumerate((1, 2, 0)):
+        torch.add(x[j], slope[k] * (r - y[j]), out=out[k])
+    return out
 
 
 def _pixel_chunks(count: torch.Tensor) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
