@@ -280,3 +280,35 @@ def test_cli_exits_with_one_line_on_user_error(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "subset" in err
     shutil.rmtree(tmp_path / "o", ignore_errors=True)
+
+
+def test_reduced_mesh_masks_agree_with_the_full_mesh_or_are_not_used(robot, tmp_path):
+    sim = tmp_path / "sim.mcap"  # large enough for a silhouette of thousands of pixels
+    simulate_recording(SimConfig(frames=6, width=480, height=270, seed=3), sim)
+    full, reduced, refused = (tmp_path / f"{n}.mcap" for n in ("full", "reduced", "refused"))
+    opts = AnnotateOptions(min_joint_speed=0.0)
+    annotate_recording(sim, full, robot, opts)
+    opts_reduced = AnnotateOptions(min_joint_speed=0.0, mesh_reduction=0.3, mesh_check_frames=2)
+    result = annotate_recording(sim, reduced, robot, opts_reduced)
+    assert result.mesh is not None and result.mesh["used"] == 0.3
+    assert result.mesh["min_iou"] >= 0.995
+    assert result.manifest_entry()["mesh"] == result.mesh
+    masks = [f"{s}/robot_mask" for s in ("left", "right")]
+    with (
+        RecordingReader(full, mask_topics=masks) as a,
+        RecordingReader(reduced, mask_topics=masks) as b,
+    ):
+        pairs = list(zip(a.frames(), b.frames(), strict=True))
+    assert len(pairs) == 6
+    for fa, fb in pairs:  # every frame, not only the two checked ones
+        for m in masks:
+            assert fa.masks[m].sum() > 1000
+            assert iou(fa.masks[m], fb.masks[m]) >= 0.995
+    # a reduction whose masks cannot reach the bar: the full mesh, the same file
+    strict = AnnotateOptions(min_joint_speed=0.0, mesh_reduction=0.9, mesh_min_iou=1.0)
+    result = annotate_recording(sim, refused, robot, strict)
+    assert result.mesh is not None and result.mesh["used"] == 0.0
+    assert result.mesh["min_iou"] < 1.0
+    assert refused.read_bytes() == full.read_bytes()
+    # without a reduction the manifest entry is what it was
+    assert "mesh" not in annotate_recording(sim, full, robot, opts).manifest_entry()

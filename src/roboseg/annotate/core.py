@@ -3,12 +3,15 @@
 For every kept frame the union of all robots' silhouettes (full, undecimated model posed with
 the interpolated joint states and placed by ``T_left_base``) is rendered in the left and right
 camera at the recording's resolution and written as PNG mask topics next to raw copies of the
-input's messages (image messages only for kept frames).
+input's messages (image messages only for kept frames). With ``mesh_reduction`` a decimated
+model is used instead where its masks agree with the full model's (IoU checked per recording).
 """
 
 from __future__ import annotations
 
+import copy
 import logging
+import time
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -67,7 +70,13 @@ _RECORD_HEAD = 9  # opcode (1 byte) + record length (8 bytes)
 class AnnotateOptions:
     """How to annotate. ``fraction``: kept share of all frames (None: every moving frame);
     ``min_joint_speed`` in rad/s (or m/s); tolerances in ns; ``png_level`` zlib level 0-9;
-    ``workers``: processes rendering masks (``<= 1``: in the calling process)."""
+    ``workers``: processes rendering masks (``<= 1``: in the calling process).
+
+    ``mesh_reduction``: share of the robot mesh's faces removed for the masks (0: the full
+    mesh). A reduced mesh renders faster; it is used for a recording only when its masks reach
+    an IoU of ``mesh_min_iou`` against the full mesh's in both cameras of each of
+    ``mesh_check_frames`` kept frames spread over the recording (otherwise the full mesh is
+    used and a warning logged); the manifest records the outcome."""
 
     camera: str = "camera"
     fraction: float | None = None
@@ -78,6 +87,9 @@ class AnnotateOptions:
     stereo_tolerance_ns: int = 1_000_000
     png_level: int = 1
     workers: int = 1
+    mesh_reduction: float = 0.0
+    mesh_min_iou: float = 0.995
+    mesh_check_frames: int = 8
 
 
 @dataclass
@@ -95,10 +107,17 @@ class RecordingResult:
     calibration: str = "tf_static"
     draped_from_ns: int | None = None
     errors: list[str] = field(default_factory=list)
+    #: with ``mesh_reduction`` > 0: reduction asked for, reduction used (0.0: the full mesh),
+    #: worst IoU of the reduced mesh's masks against the full mesh's
+    mesh: dict[str, float] | None = None
+    #: wall-clock seconds before the first mask (reading, selecting, set-up) and in all
+    #: (not part of the manifest, which stays the same for the same inputs)
+    setup_seconds: float = 0.0
+    seconds: float = 0.0
 
     def manifest_entry(self) -> dict[str, Any]:
         """The recording's entry of ``manifest.json``."""
-        return {
+        entry = {
             "file": self.file if self.sha256 else None,
             "source": self.source,
             "split": self.split,
@@ -111,6 +130,9 @@ class RecordingResult:
             "draped_from_ns": self.draped_from_ns,
             "errors": list(self.errors),
         }
+        if self.mesh is not None:
+            entry["mesh"] = dict(self.mesh)
+        return entry
 
 
 def is_mcap(path: Path) -> bool:
@@ -161,6 +183,21 @@ def mesh_is_closed(robot: RobotModel) -> bool:
     _CLOSED[id(robot)] = (weakref.ref(robot), closed)
     log.debug("robot %s: mesh %s", robot.name, "closed" if closed else "open (no culling)")
     return closed
+
+
+_DECIMATED: dict[tuple[int, float], tuple[weakref.ref, RobotModel]] = {}
+
+
+def decimated_model(robot: RobotModel, reduction: float) -> RobotModel:
+    """``robot.decimated(reduction)``, kept per model and reduction (the recordings of a folder
+    share it, and with it the cached :func:`mesh_is_closed`)."""
+    key = (id(robot), float(reduction))
+    hit = _DECIMATED.get(key)
+    if hit is not None and hit[0]() is robot:
+        return hit[1]
+    reduced = robot.decimated(reduction)
+    _DECIMATED[key] = (weakref.ref(robot), reduced)
+    return reduced
 
 
 class MaskRenderer:
@@ -222,6 +259,45 @@ class MaskRenderer:
         left, right = self.render(joints)
         return encode_mask_png(left, level), encode_mask_png(right, level)
 
+    def with_robot(self, robot: RobotModel) -> MaskRenderer:
+        """The same cameras and robot poses with another model of the robot (e.g. decimated;
+        same kinematics)."""
+        other = copy.copy(self)
+        other.robot = robot
+        n_v = robot.vertices.shape[0]
+        other.faces = torch.cat([robot.faces + k * n_v for k in range(len(self.robots))])
+        other.cull = mesh_is_closed(robot)
+        return other
+
+
+def mask_iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over union of two bool masks (1.0 when both are empty)."""
+    union = int(np.count_nonzero(a | b))
+    return 1.0 if union == 0 else int(np.count_nonzero(a & b)) / union
+
+
+def reduced_mesh_renderer(
+    full: MaskRenderer,
+    joints: Sequence[dict[str, np.ndarray]],
+    reduction: float,
+    min_iou: float,
+    check_frames: int,
+) -> tuple[MaskRenderer, dict[str, float]]:
+    """The renderer of the robot's mesh reduced by ``reduction`` (share of faces removed) if
+    its masks reach ``min_iou`` against the full mesh's in both cameras of ``check_frames``
+    frames of ``joints`` spread evenly over them, else ``full``; and what was found:
+    ``{"reduction": asked, "used": reduction or 0.0, "min_iou": worst IoU}``."""
+    reduced = full.with_robot(decimated_model(full.robot, reduction))
+    worst = 1.0
+    for k in thin_evenly(np.arange(len(joints)), max(1, check_frames)):
+        ref, test = full.render(joints[int(k)]), reduced.render(joints[int(k)])
+        worst = min(worst, mask_iou(ref[0], test[0]), mask_iou(ref[1], test[1]))
+    ok = worst >= min_iou
+    log.debug("mesh reduced by %g: worst IoU %.4f against the full mesh", reduction, worst)
+    found = {"reduction": float(reduction), "used": float(reduction) if ok else 0.0}
+    found["min_iou"] = round(worst, 6)
+    return (reduced if ok else full), found
+
 
 def annotate_recording(
     source: str | Path,
@@ -236,6 +312,7 @@ def annotate_recording(
     Damaged files are read as far as possible (counted in ``skipped.unreadable``); user errors
     (missing topic / CameraInfo / tf, joint-name mismatch) raise :class:`RobosegError`.
     """
+    t_start = time.perf_counter()
     source, out_path = Path(source), Path(out_path)
     result = RecordingResult(out_path.name, str(source.resolve()), split)
     if not is_mcap(source):
@@ -259,8 +336,9 @@ def annotate_recording(
         log.warning("%s", result.errors[-1])
         return result
     with reader:
-        _annotate(reader, out_path, robot, options, target, result)
+        _annotate(reader, out_path, robot, options, target, result, t_start)
     result.sha256 = sha256_file(out_path)
+    result.seconds = time.perf_counter() - t_start
     return result
 
 
@@ -349,6 +427,7 @@ def _annotate(
     options: AnnotateOptions,
     target: int | None,
     result: RecordingResult,
+    t_start: float,
 ) -> None:
     path = reader.path
     if not reader.robots:
@@ -371,6 +450,23 @@ def _annotate(
         log.warning("%s: distortion ignored; masks use the pinhole model of K", path)
     kept_stamps, kept_joints = _select(reader, robot, options, target, result)
     renderer = MaskRenderer(robot, poses, T_right_left, left.K, right.K, (left.height, left.width))
+    if options.mesh_reduction > 0:
+        renderer, result.mesh = reduced_mesh_renderer(
+            renderer,
+            kept_joints,
+            options.mesh_reduction,
+            options.mesh_min_iou,
+            options.mesh_check_frames,
+        )
+        if result.mesh["used"] == 0.0:
+            log.warning(
+                "%s: masks of the mesh reduced by %g reach IoU %.4f < %g against the full "
+                "mesh's; using the full mesh",
+                path,
+                options.mesh_reduction,
+                result.mesh["min_iou"],
+                options.mesh_min_iou,
+            )
     topics = {
         reader.left_topic: mask_topic(options.camera, "left", ROBOT_MASK),
         reader.right_topic: mask_topic(options.camera, "right", ROBOT_MASK),
@@ -379,6 +475,7 @@ def _annotate(
         MaskStream(renderer, kept_joints, options.png_level, options.workers) as masks,
         AnnotatedWriter(out_path) as writer,
     ):
+        result.setup_seconds = time.perf_counter() - t_start
         _copy_and_annotate(reader, writer, masks, kept_stamps, topics, options)
     log.info(
         "%s: kept %d of %d frames -> %s", path, result.frames_kept, result.frames_total, out_path
@@ -455,4 +552,6 @@ __all__ = [
     "annotate_recording",
     "draped_from",
     "joint_permutation",
+    "mask_iou",
+    "reduced_mesh_renderer",
 ]
