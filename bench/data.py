@@ -11,7 +11,10 @@ average. To add a section, define a function in this file, decorate it with
 Numbers depend on the machine and its load: wall-clock rates suffer on a shared machine, CPU
 milliseconds per frame (summed over all processes) less so. The simulator numbers include
 JPEG/PNG encoding and MCAP writing; setup (robots, drapes, the static room) is reported apart
-from the steady per-frame rate.
+from the steady per-frame rate, and so is the annotation's (index, selection, mesh check). The
+memory section measures the peak resident set of each process on its own (``VmHWM`` of a fresh
+interpreter and of each of its workers), never the running maximum over all children that
+``RUSAGE_CHILDREN`` keeps. A summary at the end puts every rate beside its target.
 """
 
 from __future__ import annotations
@@ -211,52 +214,93 @@ def _data_io() -> Any:
         return importlib.import_module("data_io")
 
 
+#: The paper's robot beside the checkout (73k faces, not closed): the annotation worst case.
+MED7 = Path(__file__).resolve().parents[2] / "shared" / "robots" / "lbr_med7" / "lbr_med7.urdf"
+ANNOTATION_TARGET_FPS = 30.0
+SIMULATOR_TARGET_FPS = 5.0
+
+
+def _annotation_robots(names: str, urdf: str | None) -> list[tuple[str, str | None]]:
+    """(label, URDF or None) of ``--annotate-robots`` (``builtin``: ``--urdf`` or the built-in
+    arm; ``med7``: :data:`MED7`, skipped when absent)."""
+    out: list[tuple[str, str | None]] = []
+    for name in (n.strip() for n in names.split(",") if n.strip()):
+        if name == "builtin":
+            out.append(("builtin" if urdf is None else Path(urdf).stem, urdf))
+        elif name == "med7":
+            if MED7.is_file():
+                out.append(("lbr_med7", str(MED7)))
+            else:
+                log.warning("annotation: %s absent, lbr_med7 skipped", MED7)
+        else:
+            raise SystemExit(f"--annotate-robots: unknown robot {name!r} (builtin, med7)")
+    return out
+
+
 @section("annotation")
 def bench_annotation(args: argparse.Namespace) -> dict[str, Any]:
     """Annotated stereo frames per second of :func:`annotate_recording` at ``--width``×
     ``--height`` on a simulated recording of ``--annotate-frames`` frames (all kept; includes
-    raw copying, FK, render, PNG, MCAP), for each ``--workers`` count side by side, with CPU
-    milliseconds per frame over all processes and the worst IoU against the simulator's ground
-    truth."""
+    raw copying, FK, render, PNG, MCAP) per robot of ``--annotate-robots``, with the full mesh
+    and with the mesh reduced by each of ``--annotate-reductions`` (used only where its masks
+    reach IoU 0.995 against the full mesh's), for each ``--workers`` count. Set-up (reading
+    the index, selecting frames, the reduced mesh and its IoU check) is reported apart from
+    the steady per-frame rate; a short untimed annotation first pays torch's one-off costs, as
+    the first recording of a folder does. Also CPU milliseconds per frame over all processes
+    and the worst IoU against the simulator's ground truth."""
     from roboseg.annotate import AnnotateOptions, annotate_recording
     from roboseg.robot import load_robot
 
-    robot = load_robot(args.urdf)
     n = args.annotate_frames
-    runs = []
+    meshes = [0.0] + [r for r in (float(x) for x in args.annotate_reductions.split(",") if x) if r]
+    robots: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp:
-        cfg = SimConfig(
-            frames=n,
-            seed=args.seed,
-            width=args.width,
-            height=args.height,
-            urdf=args.urdf,
-            workers=max(_worker_list(args.workers)),
-        )
-        simulate_recording(cfg, Path(tmp) / "in.mcap")
-        for workers in _worker_list(args.workers):
-            out = Path(tmp) / f"out_w{workers}.mcap"
-            options = AnnotateOptions(min_joint_speed=0, workers=workers)
-            cpu0, t0 = _cpu_seconds(), time.perf_counter()
-            result = annotate_recording(Path(tmp) / "in.mcap", out, robot, options)
-            seconds = time.perf_counter() - t0
-            cpu = _cpu_seconds() - cpu0
-            runs.append(
-                {
-                    "workers": workers,
-                    "frames": result.frames_kept,
-                    "seconds": round(seconds, 2),
-                    "stereo_frames_per_second": round(result.frames_kept / seconds, 2),
-                    "cpu_ms_per_frame": round(1e3 * cpu / max(result.frames_kept, 1), 1),
-                }
+        for label, urdf in _annotation_robots(args.annotate_robots, args.urdf):
+            robot = load_robot(urdf)
+            source = Path(tmp) / f"{label}.mcap"
+            cfg = SimConfig(
+                frames=n, seed=args.seed, width=args.width, height=args.height, urdf=urdf
             )
-        min_iou = _min_iou_vs_ground_truth(out)
+            simulate_recording(cfg, source)
+            warm = AnnotateOptions(min_joint_speed=0)
+            annotate_recording(source, Path(tmp) / "warm.mcap", robot, warm, target=4)
+            runs = []
+            for workers in _worker_list(args.workers):
+                for reduction in meshes:
+                    out = Path(tmp) / f"{label}_w{workers}_r{reduction}.mcap"
+                    options = AnnotateOptions(
+                        min_joint_speed=0, workers=workers, mesh_reduction=reduction
+                    )
+                    cpu0 = _cpu_seconds()
+                    result = annotate_recording(source, out, robot, options)
+                    cpu = _cpu_seconds() - cpu0
+                    kept = max(result.frames_kept, 1)
+                    frames_s = result.seconds - result.setup_seconds
+                    fps = result.frames_kept / frames_s
+                    runs.append(
+                        {
+                            "workers": workers,
+                            "mesh_reduction": reduction,
+                            "mesh": result.mesh,
+                            "frames": result.frames_kept,
+                            "seconds_setup": round(result.setup_seconds, 2),
+                            "seconds_frames": round(frames_s, 2),
+                            "steady_stereo_frames_per_second": round(fps, 1),
+                            "overall_stereo_frames_per_second": round(kept / result.seconds, 1),
+                            "target": ANNOTATION_TARGET_FPS,
+                            "meets_target": fps >= ANNOTATION_TARGET_FPS,
+                            "cpu_ms_per_frame": round(1e3 * cpu / kept, 1),
+                            "min_iou_vs_ground_truth": round(_min_iou_vs_ground_truth(out), 4),
+                        }
+                    )
+            faces = len(robot.faces)
+            robots[label] = {"faces": faces, "runs": runs}
     return {
         "width": args.width,
         "height": args.height,
-        "runs": runs,
-        "min_iou_vs_ground_truth": round(min_iou, 4),
-        "target": 30,
+        "torch_threads": torch.get_num_threads(),
+        "robots": robots,
+        "target_stereo_fps": ANNOTATION_TARGET_FPS,
     }
 
 
@@ -287,82 +331,114 @@ def bench_mcap_read(args: argparse.Namespace) -> dict[str, Any]:
     return {"frames": args.frames * 5, "frames_per_s": round(fps, 1)}
 
 
+#: Runs a measured snippet (``CODE``) in this process while a thread polls the ``VmHWM`` (peak
+#: resident set) of every descendant process; prints this process's own ``VmHWM`` and each
+#: descendant's last reading as JSON. ``VmHWM`` only grows, so the last reading is the child's
+#: peak up to at most one poll interval before it exited.
 _PEAK_RSS = """
-import json, resource
-def _hwm_mb():
-    try:  # this process image's own high-water mark (ru_maxrss survives exec on Linux)
-        with open("/proc/self/status") as f:
-            return next(int(x.split()[1]) for x in f if x.startswith("VmHWM:")) / 1024
-    except (OSError, StopIteration):
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
-print(json.dumps({"self_mb": _hwm_mb(), "children_mb": kids}))
+import json, os, threading
+import psutil
+
+def vm_hwm_kb(pid):
+    with open(f"/proc/{pid}/status") as f:
+        return next(int(x.split()[1]) for x in f if x.startswith("VmHWM:"))
+
+peaks, stop = {}, threading.Event()
+
+def watch():
+    me = psutil.Process()
+    while True:
+        for child in me.children(recursive=True):
+            try:
+                peaks[child.pid] = max(peaks.get(child.pid, 0), vm_hwm_kb(child.pid))
+            except (OSError, StopIteration):
+                pass  # exited between listing and reading
+        if stop.wait(POLL_S):
+            return
+
+watcher = threading.Thread(target=watch, daemon=True)
+watcher.start()
+try:
+    exec(compile(CODE, "<measured>", "exec"), {"__name__": "__measured__"})
+finally:
+    stop.set()
+    watcher.join()
+print(json.dumps({"self_mb": vm_hwm_kb(os.getpid()) / 1024,
+                  "children_mb": [peaks[p] / 1024 for p in sorted(peaks)]}))
 """
 
 
-def _peak_rss_child(code: str) -> dict[str, float]:
-    """Peak RSS (MB) of a fresh Python process running ``code`` (``self_mb``: ``VmHWM`` on
-    Linux, since ``ru_maxrss`` would carry over the bench's own size from before ``exec``) and
-    of the largest process it started (``children_mb``, 0 without children), reported by the
-    process itself, so every measurement is independent of the others."""
+def peak_rss(code: str, poll_s: float = 0.02) -> dict[str, Any]:
+    """Peak resident set sizes (MB) of a fresh Python process running ``code``: its own
+    (``self_mb``, from ``/proc/self/status`` ``VmHWM``: the peak of this process image, not
+    the ``ru_maxrss`` that would carry the bench's size over from before ``exec``) and that of
+    each process it started (``children_mb``, in the order they were started; read by polling
+    their ``VmHWM`` every ``poll_s`` seconds), each process measured on its own. Linux only.
+    """
     import subprocess
     import sys
 
+    script = f"CODE = {code!r}\nPOLL_S = {float(poll_s)!r}\n" + _PEAK_RSS
     done = subprocess.run(
-        [sys.executable, "-c", code + "\n" + _PEAK_RSS],
-        check=True,
-        capture_output=True,
-        text=True,
+        [sys.executable, "-c", script], check=True, capture_output=True, text=True
     )
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+def _growth(short: float, long: float) -> dict[str, float]:
+    return {"short": round(short, 1), "long": round(long, 1), "growth": round(long - short, 1)}
+
+
 @section("memory")
 def bench_memory(args: argparse.Namespace) -> dict[str, Any]:
-    """Peak RSS of reading, and of annotating, a ``--memory-frames`` short vs long recording,
-    each in a fresh process, and the growth from short to long (streaming: about 0).
-
-    The recordings are small (``--memory-width``×``--memory-height`` JPEGs;
-    :func:`bench.data_io.write_annotatable_recording`, not rendered) so that writing thousands
-    of frames stays quick, in chunks of ``--memory-chunk-kb``; the annotation uses
-    ``--memory-workers`` processes (``children_mb``: the largest worker)."""
-    data_io = _data_io()
+    """Peak RSS of reading, and of annotating, a short and a long simulated recording of
+    ``--memory-frames`` frames at ``--width``×``--height``, each in a fresh process, for each
+    ``--memory-workers`` count: the annotating process's own peak and every worker's. Streaming
+    keeps them flat: the growth from short to long should be small beside the size of the
+    long recording's extra frames (``extra_data_mb``, what holding them would cost)."""
     short, long = (int(n) for n in args.memory_frames.split(","))
-    w, h = args.memory_width, args.memory_height
-    out: dict[str, Any] = {"image": f"{w}x{h} (small to keep generation quick)"}
-    rows: dict[str, dict[int, dict[str, float]]] = {"read": {}, "annotate": {}}
+    out: dict[str, Any] = {"image": f"{args.width}x{args.height}", "frames": [short, long]}
+    peaks: dict[str, dict[int, dict[str, Any]]] = {}
+    sizes = {}
     with tempfile.TemporaryDirectory() as tmp:
         for n in (short, long):
-            path = data_io.write_annotatable_recording(
-                Path(tmp) / f"r{n}.mcap", n, w, h, chunk_size=args.memory_chunk_kb * 1024
+            path = Path(tmp) / f"r{n}.mcap"
+            cfg = SimConfig(
+                frames=n, seed=args.seed, width=args.width, height=args.height, urdf=args.urdf
             )
+            simulate_recording(cfg, path)
+            sizes[n] = path.stat().st_size / 2**20
             read = (
                 "from roboseg.recording import RecordingReader as R\n"
                 f"with R({str(path)!r}) as r:\n"
-                "    assert sum(1 for _ in r.frames()) > 0\n"
+                f"    assert sum(1 for _ in r.frames()) == {n}\n"
             )
-            rows["read"][n] = _peak_rss_child(read)
-            annotate = (
-                "import torch\n"
-                "torch.set_num_threads(1)\n"
-                "from roboseg.annotate import AnnotateOptions, annotate_recording\n"
-                "from roboseg.robot import load_robot\n"
-                f"o = AnnotateOptions(min_joint_speed=0, workers={args.memory_workers})\n"
-                f"r = annotate_recording({str(path)!r}, {str(Path(tmp) / 'a.mcap')!r},"
-                " load_robot(None), o)\n"
-                f"assert r.frames_kept == {n}, r\n"
-            )
-            rows["annotate"][n] = _peak_rss_child(annotate)
-    for what, by_n in rows.items():
-        for key in ("self_mb", "children_mb"):
-            if what == "read" and key == "children_mb":
-                continue
-            a, b = by_n[short][key], by_n[long][key]
-            out[f"{what}_{key}"] = {
-                f"{short}_frames": round(a, 1),
-                f"{long}_frames": round(b, 1),
-                "growth_mb": round(b - a, 1),
-            }
+            peaks.setdefault("read", {})[n] = peak_rss(read)
+            for workers in _worker_list(args.memory_workers):
+                annotate = (
+                    "import torch\n"
+                    "torch.set_num_threads(1)\n"
+                    "from roboseg.annotate import AnnotateOptions, annotate_recording\n"
+                    "from roboseg.robot import load_robot\n"
+                    f"o = AnnotateOptions(min_joint_speed=0, workers={workers})\n"
+                    f"r = annotate_recording({str(path)!r}, {str(Path(tmp) / 'a.mcap')!r},"
+                    f" load_robot({args.urdf!r}), o)\n"
+                    f"assert r.frames_kept == {n}, r\n"
+                )
+                peaks.setdefault(f"annotate_workers_{workers}", {})[n] = peak_rss(annotate)
+    out["extra_data_mb"] = round(sizes[long] - sizes[short], 1)
+    rows: dict[str, Any] = {}
+    for what, by_n in peaks.items():
+        rows[what] = {"process_mb": _growth(by_n[short]["self_mb"], by_n[long]["self_mb"])}
+        kids_short, kids_long = by_n[short]["children_mb"], by_n[long]["children_mb"]
+        if kids_short or kids_long:
+            rows[what]["workers_mb"] = [
+                _growth(a, b) for a, b in zip(kids_short, kids_long, strict=False)
+            ]
+    out["peak_rss_mb"] = rows
+    growths = [r["process_mb"]["growth"] for r in rows.values()]
+    growths += [w["growth"] for r in rows.values() for w in r.get("workers_mb", [])]
+    out["largest_growth_mb"] = max(growths)
     return out
 
 
@@ -378,16 +454,26 @@ def build_parser() -> argparse.ArgumentParser:
         "--workers", default="1,2", help="simulator/annotation: process counts, side by side"
     )
     p.add_argument("--annotate-frames", type=int, default=60, help="annotation section: frames")
-    p.add_argument("--memory-frames", default="1000,5000", help="memory section: short,long")
-    p.add_argument("--memory-width", type=int, default=64)
-    p.add_argument("--memory-height", type=int, default=48)
-    p.add_argument("--memory-workers", type=int, default=2, help="memory section: annotation")
     p.add_argument(
-        "--memory-chunk-kb",
-        type=int,
-        default=256,
-        help="memory section: MCAP chunk size, small so that both recordings fill the reader's "
-        "chunk cache (otherwise the short one shows less cache, not less growth)",
+        "--annotate-robots",
+        default="builtin,med7",
+        help="annotation section: builtin (--urdf or the built-in arm) and/or med7 (the LBR "
+        "Med 7 beside the checkout, skipped when absent)",
+    )
+    p.add_argument(
+        "--annotate-reductions",
+        default="0.3,0.6",
+        help="annotation section: mesh reductions timed besides the full mesh (each used only "
+        "where its masks reach IoU 0.995 against the full mesh's)",
+    )
+    p.add_argument(
+        "--memory-frames",
+        default="120,480",
+        help="memory section: short,long recording (both long enough to fill the reader's "
+        "chunk cache at --width x --height, so that a growth is a growth, not a cache filling)",
+    )
+    p.add_argument(
+        "--memory-workers", default="1,2", help="memory section: annotation process counts"
     )
     p.add_argument("--recordings", type=int, default=4, help="difficulty section: recordings")
     p.add_argument("--difficulty-frames", type=int, default=24)
@@ -396,6 +482,51 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     p.add_argument("--json", type=Path, default=None, help="also write the results here")
     return p
+
+
+def summary(results: dict[str, Any]) -> list[str]:
+    """Plain-text lines of the rates beside their targets (PASS/FAIL) and the memory check."""
+    lines = []
+    sim = results.get("simulator")
+    for run in sim["runs"] if sim else []:
+        fps = run["steady_stereo_frames_per_second"]
+        lines.append(
+            f"{'PASS' if fps >= SIMULATOR_TARGET_FPS else 'FAIL'}  simulator "
+            f"{sim['width']}x{sim['height']}, {run['workers']} worker(s): {fps:.1f} stereo "
+            f"frames/s steady (target >= {SIMULATOR_TARGET_FPS:g}); set-up "
+            f"{run['seconds_setup']:.2f} s apart"
+        )
+    ann = results.get("annotation")
+    for label, robot in (ann or {}).get("robots", {}).items():
+        for run in robot["runs"]:
+            mesh = "full mesh"
+            if run["mesh"] is not None:
+                m = run["mesh"]
+                mesh = (
+                    f"mesh reduced {m['used']:g} (IoU {m['min_iou']:.4f} vs full)"
+                    if m["used"]
+                    else f"reduction {m['reduction']:g} refused (IoU {m['min_iou']:.4f}): full"
+                )
+            fps = run["steady_stereo_frames_per_second"]
+            lines.append(
+                f"{'PASS' if run['meets_target'] else 'FAIL'}  annotation {ann['width']}x"
+                f"{ann['height']} {label} ({robot['faces']} faces), {mesh}, {run['workers']} "
+                f"worker(s): {fps:.1f} stereo frames/s steady (target >= "
+                f"{ANNOTATION_TARGET_FPS:g}); set-up {run['seconds_setup']:.2f} s apart"
+            )
+    mem = results.get("memory")
+    if mem:
+        short, long = mem["frames"]
+        for what, row in mem["peak_rss_mb"].items():
+            parts = [("process", row["process_mb"])]
+            parts += [(f"worker {k}", w) for k, w in enumerate(row.get("workers_mb", []), 1)]
+            for who, g in parts:
+                lines.append(
+                    f"memory  {what} {who}: peak RSS {g['short']:.0f} MB at {short} frames, "
+                    f"{g['long']:.0f} MB at {long} frames ({g['growth']:+.1f} MB; the extra "
+                    f"frames hold {mem['extra_data_mb']:.0f} MB)"
+                )
+    return lines
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -412,6 +543,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         # other processes' load: wall-clock rates above are shared with it (os.cpu_count() cores)
         results[name]["load_average_1min"] = round(os.getloadavg()[0], 1)
         print(json.dumps({name: results[name]}, indent=2), flush=True)
+    lines = summary(results)
+    if lines:
+        print(f"\nsummary ({torch.get_num_threads()} torch thread(s) per process):")
+        print("\n".join(lines))
     if args.json is not None:
         args.json.write_text(json.dumps(results, indent=2))
     return results
