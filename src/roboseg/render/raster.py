@@ -7,12 +7,14 @@ Triangles with any vertex closer than ``z_near`` are culled whole (no near-plane
 Algorithm (scanline spans): project the vertices, cull triangles whose pixel-centre bounding box
 is empty or off-image, and intersect every pixel row a triangle crosses with its three edges (in
 the vertices' float dtype), which gives the span ``[ceil(left), floor(right)]`` of covered pixel
-centres. :func:`render_hard` only marks span ends in a difference image and takes a cumulative
-sum along the rows; :func:`rasterize` enumerates the pixels of the spans, evaluates 1/z (affine
-in screen space) and resolves visibility with one ``scatter_reduce(amin)`` on a 64-bit key
-packing the float32 depth above the face index (positive floats order like their bit patterns),
-so the nearest surface wins and ties go to the lower face index. Both functions use the same
-spans, so their silhouettes are identical.
+centres. The first rows of all triangles are intersected level by level over the whole edge
+table (most triangles of a detailed mesh cover one to three rows), the other rows as gathered
+(triangle, row) pairs. :func:`render_hard` only marks span ends in a difference image and takes
+a cumulative sum along the rows; :func:`rasterize` enumerates the pixels of the spans, evaluates
+1/z (affine in screen space) and resolves visibility with one ``scatter_reduce(amin)`` on a
+64-bit key packing the float32 depth above the face index (positive floats order like their bit
+patterns), so the nearest surface wins and ties go to the lower face index. Both functions use
+the same spans, so their silhouettes are identical.
 """
 
 from __future__ import annotations
