@@ -42,29 +42,33 @@ log = logging.getLogger("bench.learning")
 #: Seconds at which the table reports each curve.
 REPORT_AT = (60, 120, 180, 240, 300, 420, 600)
 
+_WHOLE = ["data.image_size=[144,256]", "augment.crop=null"]
+_FP32 = ["trainer.precision=32-true", "module.channels_last=false"]
 _OLD = ["model=unet_mit_b0", "model.decoder_channels=[128,64,32,16,16]",
-        "data.image_size=[256,256]", "augment=paper"]
-_CROP = ["data.image_size=[288,512]",
-         "augment.crop={_target_:roboseg.augment.RobotCrop,size:[256,256],p_robot:0.5}"]
+        "data.image_size=[256,256]", "augment=paper", "augment.crop=null",
+        "augment.affine.scale=[1.0,1.8]", *_FP32]
+_NOAUG = ["augment.flip.p=0", "augment.affine.p=0", "augment.cmm.p=0",
+          "augment.photometric.ops=[]"]
 #: Recipe name → Hydra overrides on top of ``experiment=default`` (``make train``'s recipe:
-#: RegNetY-400MF, decoder [64, 32, 16, 16, 8], whole frames at 144×256, lr 1e-3, the paper's
-#: augmentation ramped in over ``trainer.max_steps``).
+#: MIT-B0, decoder [64, 32, 16, 16, 8], 144×256 windows of native 270×480 frames with whole
+#: frames predicted, NHWC + bf16, lr 1e-3 cosine, the paper's augmentation ramped in).
 RECIPES: dict[str, list[str]] = {
     "default": [],
-    # augmentation schedule
-    "default_noaug": ["augment=none"],
-    "default_aug_from_step_0": ["augment=paper"],
+    # augmentation schedule (the windows stay)
+    "default_noaug": _NOAUG,
+    "default_aug_from_step_0": ["augment.ramp_steps=0"],
     # encoder (same decoder, input and schedule)
-    "mit_b0": ["model=unet_mit_b0", "model.decoder_channels=[64,32,16,16,8]"],
-    "resnet18": ["model=unet_resnet18", "model.decoder_channels=[64,32,16,16,8]"],
+    "regnety_004": ["model=unet_regnety_004"],
+    "resnet18": ["model=unet_resnet18"],
+    # input: whole frames squashed to 144×256 instead of windows of native frames
+    "whole_144x256": _WHOLE,
+    "regnety_004_whole_144x256": ["model=unet_regnety_004", *_WHOLE],
     # learning rate
     "default_lr3e-3": ["module.lr=3.0e-3"],
-    # input: the whole frame squashed to 256², or 256² crops of native-size frames (288×512,
-    # half of them centred on the robot) with the whole frame predicted
-    "default_256sq": ["data.image_size=[256,256]"],
-    "crop256_native": _CROP,
+    # arithmetic: float32 in the usual NCHW layout
+    "default_fp32": _FP32,
     # make train's recipe before this bench: MIT-B0, half-width decoder, 256² squashed frames,
-    # the paper's augmentation from step 0
+    # the paper's augmentation from step 0, float32
     "old_default": _OLD,
 }
 

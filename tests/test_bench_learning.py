@@ -23,13 +23,15 @@ def test_recipe_builds_a_module(name: str) -> None:
                                           "paths.output_dir=/tmp", *RECIPES[name]])
     module = instantiate(cfg.module)
     assert module.hparams.image_size == list(cfg.data.image_size)
-    if "augment=none" in RECIPES[name]:
-        assert module.augment is None
-    else:
-        crop = module.augment.crop
-        assert (crop is not None) == any("crop" in o for o in RECIPES[name])
-        if crop is not None:  # windows fit the frames they are cut from
-            assert all(c <= s for c, s in zip(crop.size, cfg.data.image_size, strict=True))
+    crop = module.augment.crop
+    assert (crop is None) == ("augment.crop=null" in RECIPES[name])
+    if crop is not None:  # windows fit the frames they are cut from
+        assert all(c <= s for c, s in zip(crop.size, cfg.data.image_size, strict=True))
+    if "augment.photometric.ops=[]" in RECIPES[name]:  # no augmentation: nothing fires
+        assert module.augment.affine.p == module.augment.cmm.p == 0.0
+    fp32 = "trainer.precision=32-true" in RECIPES[name]
+    assert cfg.trainer.precision == ("32-true" if fp32 else "bf16-mixed")
+    assert module.hparams.channels_last is not fp32
 
 
 def test_iou_at_is_the_best_value_reached_by_then():
