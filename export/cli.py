@@ -107,7 +107,7 @@ def run(cfg: DictConfig) -> int:
     print("\n".join(check.lines()))
     if not check.ok:
         print(f"error: {out}: onnxruntime differs from PyTorch by more than "
-              f"{float(cfg.verify.tolerance):g}", file=sys.stderr)
+              f"{float(cfg.verify.tolerance):g} x max(1, max |logit|)", file=sys.stderr)
         return 1
     for kind, enabled, convert in (("fp16", cfg.fp16, convert_fp16),
                                    ("int8", cfg.int8, quantize_int8)):

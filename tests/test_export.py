@@ -164,3 +164,16 @@ def test_segmentor_import_is_light():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == ""
+
+
+def test_verification_bound_scales_with_the_logits():
+    from export.onnx import Verification
+
+    shapes = [(2, 3, 32, 32), (2, 3, 32, 64)]
+    # 8e-4 off on logits up to 12: within 1e-4 x 12; 2e-4 off on logits below 1: not within 1e-4
+    check = Verification(shapes, [8e-4, 2e-4], 1e-4, [12.0, 0.5])
+    assert check.bounds() == pytest.approx([1.2e-3, 1e-4])
+    assert not check.ok
+    assert check.lines()[0].endswith("bound 0.0012)") and check.lines()[1].endswith("FAIL")
+    assert Verification(shapes, [8e-4, 5e-5], 1e-4, [12.0, 0.5]).ok
+    assert not Verification(shapes, [8e-4, 5e-5], 1e-4).ok  # no scales: absolute bound
