@@ -312,3 +312,17 @@ def test_reduced_mesh_masks_agree_with_the_full_mesh_or_are_not_used(robot, tmp_
     assert refused.read_bytes() == full.read_bytes()
     # without a reduction the manifest entry is what it was
     assert "mesh" not in annotate_recording(sim, full, robot, opts).manifest_entry()
+
+
+def test_config_reaches_the_mesh_reduction_options():
+    from omegaconf import OmegaConf
+
+    from roboseg.cli.annotate import options_from_config
+
+    cfg = OmegaConf.load(Path(__file__).parents[1] / "conf" / "annotate.yaml")
+    default = options_from_config(cfg)
+    assert (default.mesh_reduction, default.mesh_min_iou, default.mesh_check_frames) == (
+        0.0, 0.995, 8)
+    cfg.mesh.reduction, cfg.mesh.min_iou, cfg.mesh.check_frames = 0.6, 0.99, 3
+    asked = options_from_config(cfg)
+    assert (asked.mesh_reduction, asked.mesh_min_iou, asked.mesh_check_frames) == (0.6, 0.99, 3)

@@ -41,6 +41,9 @@ def options_from_config(cfg: DictConfig) -> AnnotateOptions:
             stereo_tolerance_ns=round(float(cfg.stereo_tolerance_ms) * 1e6),
             png_level=int(cfg.png_level),
             workers=int(OmegaConf.select(cfg, "workers", default=1)),
+            mesh_reduction=float(OmegaConf.select(cfg, "mesh.reduction", default=0.0)),
+            mesh_min_iou=float(OmegaConf.select(cfg, "mesh.min_iou", default=0.995)),
+            mesh_check_frames=int(OmegaConf.select(cfg, "mesh.check_frames", default=8)),
         )
     except (TypeError, ValueError) as exc:
         raise RobosegError(f"annotate config: {exc}") from None
