@@ -1,5 +1,6 @@
-"""Shared fixtures: the KUKA LBR Med 7 URDF beside the checkout, the built-in robot, and a
-per-session decimation cache so tests never write to the user's cache."""
+"""Shared fixtures: the KUKA LBR Med 7 URDF beside the checkout, the built-in robot, a
+per-session decimation cache so tests never write to the user's cache, and one torch thread for
+the modules of small renders."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import torch
 
 from roboseg.robot import RobotModel, load_robot
 
@@ -35,3 +37,13 @@ def lbr_urdf() -> Path:
 def default_robot() -> RobotModel:
     """The built-in primitive 7-DoF arm (float32, CPU); treat as read-only."""
     return load_robot(None)
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread() -> Iterator[None]:
+    """Small renders run fastest on one thread; on a loaded machine extra threads only contend.
+    A module opts in with ``pytestmark = pytest.mark.usefixtures("one_torch_thread")``."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

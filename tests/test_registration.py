@@ -186,13 +186,7 @@ def test_target_from_probabilities_and_iou() -> None:
 WIDTH, HEIGHT = 160, 90
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _single_thread():
-    """Small renders run fastest on one thread; on a loaded machine extra threads only contend."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

@@ -38,12 +38,7 @@ LEFT = "camera_left_optical_frame"
 GT_TOPICS = ["left/robot_mask_gt", "right/robot_mask_gt"]
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _single_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # --------------------------------------------------------------------------------------------
