@@ -191,6 +191,30 @@ def spread_configurations(q: np.ndarray, n: int, scale: np.ndarray | None = None
     return order
 
 
+def refit_on_own_pixels(
+    verts: torch.Tensor,
+    faces: torch.Tensor,
+    views: Sequence[View],
+    masks: Sequence[np.ndarray],
+    res: RegistrationResult,
+    silhouettes: Sequence[np.ndarray],
+    margins_px: Sequence[float],
+    cfg: RegisterConfig,
+) -> tuple[RegistrationResult, list[np.ndarray]]:
+    """SDR again from ``res`` on only the mask pixels within ``margins_px`` of the estimate's
+    ``silhouettes`` (per view ``[C, H, W]`` bool; :func:`near_silhouettes`): other robots in the
+    masks removed. Returns the refit and its masks, or ``res`` and ``masks`` unchanged when a view
+    would keep no pixel or the refit diverges."""
+    own = [near_silhouettes(m, s, r) for m, s, r in zip(masks, silhouettes, margins_px,
+                                                          strict=True)]
+    if not all(m.any() for m in own):
+        return res, list(masks)
+    own_views, own_masks = crop_to_masks(list(views), own, cfg.roi_margin)
+    refit = sdr(verts, faces, views_for_width(own_views, cfg.width), own_masks, res.T_cam_base,
+                cfg.sdr)
+    return (refit, own) if refit.reason != "diverged" else (res, list(masks))
+
+
 def near_silhouettes(masks: np.ndarray, silhouettes: np.ndarray, margin_px: float) -> np.ndarray:
     """``masks`` ``[C, H, W]`` bool without the pixels farther than ``margin_px`` (Euclidean,
     between pixel centres) from every pixel of the matching ``silhouettes`` ``[C, H, W]`` bool:
@@ -358,24 +382,10 @@ class _Fitter:
             if refined.reason != "diverged":
                 res = refined
         if self.margins is not None and res.reason != "diverged":
-            own = [
-                near_silhouettes(m, s, r)
-                for m, s, r in zip(
-                    masks, self.silhouettes(res.T_cam_base), self.margins, strict=True
-                )
-            ]
-            if all(m.any() for m in own):
-                own_views, own_masks = crop_to_masks(self.views, own, cfg.roi_margin)
-                refit = sdr(
-                    self.verts,
-                    faces,
-                    views_for_width(own_views, cfg.width),
-                    own_masks,
-                    res.T_cam_base,
-                    cfg.sdr,
-                )
-                if refit.reason != "diverged":
-                    res, masks = refit, own
+            res, masks = refit_on_own_pixels(
+                self.verts, faces, self.views, masks, res, self.silhouettes(res.T_cam_base),
+                self.margins, cfg,
+            )
         seconds["sdr"] = seconds.get("sdr", 0.0) + time.perf_counter() - t1
         return res, masks, found_cso
 

@@ -40,7 +40,7 @@ from roboseg.registration.register import (
     Configuration,
     RegisterConfig,
     Registration,
-    near_silhouettes,
+    refit_on_own_pixels,
     spread_configurations,
 )
 from roboseg.registration.sdr import RegistrationResult, sdr
@@ -473,26 +473,11 @@ def refine_registration(
     if trim and res.reason != "diverged":
         from roboseg.registration.sdr_prior import render_prior
 
-        own = [
-            near_silhouettes(
-                m,
-                render_prior(verts, fine.faces, v, res.T_cam_base) > 0.5,
-                cfg.other_robots_margin * v.width,
-            )
-            for m, v in zip(mask_stacks, views, strict=True)
-        ]
-        if all(m.any() for m in own):
-            own_views, own_masks = crop_to_masks(views, own, cfg.roi_margin)
-            refit = sdr(
-                verts,
-                fine.faces,
-                views_for_width(own_views, cfg.width),
-                own_masks,
-                res.T_cam_base,
-                cfg.sdr,
-            )
-            if refit.reason != "diverged":
-                res, mask_stacks = refit, own
+        res, mask_stacks = refit_on_own_pixels(
+            verts, fine.faces, views, mask_stacks, res,
+            [render_prior(verts, fine.faces, v, res.T_cam_base) > 0.5 for v in views],
+            [cfg.other_robots_margin * v.width for v in views], cfg,
+        )
     t2 = time.perf_counter()
     warnings = _fit_warnings(res, used, cfg.min_iou)
     if len(used) < cfg.configs:
