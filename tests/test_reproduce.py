@@ -53,7 +53,7 @@ def tiny_overrides(tmp: Path) -> list[str]:
         "register.configs=3", f"register.overrides={_quoted(REGISTER)}",
         f"train_overrides={_quoted(SMALL_TRAIN)}", f"lab.overrides={_quoted(SMALL_TRAIN)}",
         'annotate.overrides=["min_joint_speed=0.0"]', "track.frames=6", MODELS,
-        "localise.cpu={sdr: m3, sdr_prior: m4}",
+        "localise.cpu={sdr: m3, sdr_prior: m4}", "undraped.overrides=[]",
         "benches=[{name: echo, cmd: [python, -c, 'print(\"figure 42.0 ms\")']}]",
     ]
 
@@ -239,3 +239,31 @@ def test_lab_recordings_fold_into_one_row_per_split() -> None:
     assert train[0] == "lab_train_00 … lab_train_02 (3)" and train[3] == "1"
     assert train[4] == f"{lab[0].seed} … {lab[2].seed}"
     assert val[0] == "lab_val_00 (1)" and val[4] == str(lab[3].seed)
+
+
+@pytest.mark.parametrize("segmentor", ["model", "motion"])
+def test_undraped_segmentor_chooses_the_bootstrap_or_none(tmp_path: Path, segmentor: str) -> None:
+    from omegaconf import OmegaConf
+
+    from roboseg.reproduce import Layout, build_plan, model_specs, plan_study
+
+    cfg = OmegaConf.load(ROOT / "conf" / "reproduce.yaml")
+    cfg.undraped.segmentor = segmentor
+    cfg.undraped.overrides = ["self_training.rounds=1"]
+    lab, study = plan_study(cfg)
+    layout = Layout(tmp_path, tmp_path / "page.md", lab, study, model_specs(cfg))
+    plan = {step.name: step for step in build_plan(cfg, layout)}
+    bootstrap = [n for n in plan if "lab" in n or "bootstrap" in n]
+    argv = plan["register_undraped_or_test_00_robot_1"].argv
+    assert argv[-1] == "self_training.rounds=1"
+    draped = plan["register_draped_sdr_robot_0"].argv
+    assert f"model={layout.onnx(cfg.localise.cpu.sdr)}" in draped
+    if segmentor == "model":
+        assert "train_bootstrap" in bootstrap and "simulate_lab_train_00" in bootstrap
+        assert f"model={layout.bootstrap_onnx}" in argv and "segmentor=motion" not in argv
+    else:  # no lab rig, no model: the registrations name the segmentor
+        assert bootstrap == []
+        assert "segmentor=motion" in argv and not any(a.startswith("model=") for a in argv)
+    cfg.undraped.segmentor = "prompt"
+    with pytest.raises(SystemExit, match="undraped.segmentor=prompt: not one of model, motion"):
+        build_plan(cfg, layout)

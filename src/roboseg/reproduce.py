@@ -55,6 +55,8 @@ log = logging.getLogger("roboseg.reproduce")
 
 PROJECT_ROOT = Path(CONF_DIR).resolve().parent
 LAB_SEED_OFFSET = 10_000
+#: what may segment the operating-room recordings' undraped phase (``undraped.segmentor``)
+UNDRAPED_SEGMENTORS = ("model", "motion")
 
 
 # --- stages ----------------------------------------------------------------------------------
@@ -545,15 +547,29 @@ def _write_json(path: Path, data: Any) -> None:
 
 
 def _register_argv(
-    cfg: DictConfig, rec: Recording, recording: Path, model: Path, method: str, phase: str,
-    robot: str, out: Path,
+    cfg: DictConfig, rec: Recording, recording: Path, model: Path | None, method: str,
+    phase: str, robot: str, out: Path, extra: Sequence[str] = (),
 ) -> list[str]:
-    extra = cfg.register.get("two_robot_overrides", []) if rec.robots > 1 else []
+    """roboseg-register's command line; ``model`` None: ``extra`` names the segmentor."""
+    two_robots = cfg.register.get("two_robot_overrides", []) if rec.robots > 1 else []
     return [
-        script("roboseg-register"), f"recording={recording}", f"model={model}", f"method={method}",
+        script("roboseg-register"), f"recording={recording}",
+        *([f"model={model}"] if model is not None else []), f"method={method}",
         f"phase={phase}", f"robot.name={robot}", f"configs={int(cfg.register.configs)}",
-        f"threads={int(cfg.threads)}", f"out={out}", *cfg.register.overrides, *extra,
+        f"threads={int(cfg.threads)}", f"out={out}", *cfg.register.overrides, *two_robots,
+        *extra,
     ]
+
+
+def undraped_segmentor(cfg: DictConfig) -> str:
+    """``undraped.segmentor`` of ``cfg``: ``model`` (the lab bootstrap) or ``motion``."""
+    kind = str(cfg.get("undraped", {}).get("segmentor", "model"))
+    if kind not in UNDRAPED_SEGMENTORS:
+        raise SystemExit(
+            f"undraped.segmentor={kind}: not one of {', '.join(UNDRAPED_SEGMENTORS)} (a prompt "
+            "needs a person's clicks per recording, which a simulated study does not have)"
+        )
+    return kind
 
 
 def _train_steps(
@@ -593,34 +609,40 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
             *cfg.operating_room.simulate_overrides, *extra,
         ])
 
-    # 1. bootstrap: the calibrated lab rig
-    lab_frames = frames if cfg.lab.get("frames") is None else int(cfg.lab.frames)
-    for rec in layout.lab:
-        steps.append(simulate(
-            rec, [f"drape.undraped_fraction={float(cfg.lab.undraped_fraction)}"], lab_frames
-        ))
-    lab_root = layout.bootstrap / "annotated"
-    steps.append(Step("annotate_lab", [
-        script("roboseg-annotate"), f"in={layout.recording(layout.lab[0]).parent}",
-        f"out={lab_root}", "phase=undraped", *cfg.annotate.overrides,
-        *cfg.lab.get("annotate_overrides", []),
-    ]))
-    steps += _train_steps(
-        layout, "bootstrap", str(cfg.lab.experiment), lab_root,
-        [f"trainer.max_steps={int(cfg.lab.steps)}", "data.val_phase=undraped",
-         *cfg.lab.overrides],
-        cfg, layout.bootstrap / "model.ckpt", layout.bootstrap_onnx,
-    )
+    # 1. bootstrap: the calibrated lab rig (only when a model segments the undraped phase)
+    segmentor = undraped_segmentor(cfg)
+    if segmentor == "model":
+        lab_frames = frames if cfg.lab.get("frames") is None else int(cfg.lab.frames)
+        for rec in layout.lab:
+            steps.append(simulate(
+                rec, [f"drape.undraped_fraction={float(cfg.lab.undraped_fraction)}"], lab_frames
+            ))
+        lab_root = layout.bootstrap / "annotated"
+        steps.append(Step("annotate_lab", [
+            script("roboseg-annotate"), f"in={layout.recording(layout.lab[0]).parent}",
+            f"out={lab_root}", "phase=undraped", *cfg.annotate.overrides,
+            *cfg.lab.get("annotate_overrides", []),
+        ]))
+        steps += _train_steps(
+            layout, "bootstrap", str(cfg.lab.experiment), lab_root,
+            [f"trainer.max_steps={int(cfg.lab.steps)}", "data.val_phase=undraped",
+             *cfg.lab.overrides],
+            cfg, layout.bootstrap / "model.ckpt", layout.bootstrap_onnx,
+        )
 
     # 2. operating room: register undraped (no truth), self-annotate with the estimate
+    undraped_model = layout.bootstrap_onnx if segmentor == "model" else None
+    undraped_extra = [*([] if segmentor == "model" else [f"segmentor={segmentor}"]),
+                      *cfg.get("undraped", {}).get("overrides", [])]
     for rec in layout.study:
         steps.append(simulate(rec, []))
     for rec in layout.study:
         for robot in robots_of(rec):
             steps.append(Step(
                 f"register_undraped_{rec.stem}_{robot}",
-                _register_argv(cfg, rec, layout.recording(rec), layout.bootstrap_onnx, "sdr",
-                               "undraped", robot, layout.undraped_pose(rec, robot).parent),
+                _register_argv(cfg, rec, layout.recording(rec), undraped_model, "sdr",
+                               "undraped", robot, layout.undraped_pose(rec, robot).parent,
+                               undraped_extra),
                 tolerant=True,  # a poor fit still writes pose.yaml: it is used and reported
                 parallel=True,
             ))

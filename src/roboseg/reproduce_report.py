@@ -135,9 +135,15 @@ def registration_error(
     R = doc["T_cam_base"][:3, :3].T @ T_true[:3, :3]
     angle = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
     q1, med, q3 = np.percentile(tool, [25, 50, 75])
+    rounds = doc.get("self_training") or []
+    kept = [r["round"] for r in rounds if r.get("kept")]
     return {
         "robot": name,
         "method": doc.get("method"),
+        "segmentor": (doc.get("segmentor") or {}).get("kind", "model"),
+        # self-training: rounds run after the first registration, the round kept (0: the first)
+        "self_training_rounds": max(0, len(rounds) - 1),
+        "self_training_kept": kept[0] if kept else None,
         "converged": bool(doc.get("converged", False)),
         "residual_iou": doc.get("residual_iou"),
         "frames": int(len(q)),
@@ -298,6 +304,14 @@ def _status(stages: Any, name: str) -> str:
     return "ok" if code == 0 else f"exit status {code}"
 
 
+def _masks_of(reg: dict[str, Any]) -> str:
+    """Where an undraped registration's masks came from: ``motion + self-training 1, kept 1``."""
+    text = str(reg.get("segmentor") or "model")
+    if reg.get("self_training_rounds"):
+        text += f" + self-training {reg['self_training_rounds']}, kept {reg['self_training_kept']}"
+    return text
+
+
 def at_a_glance(
     stage_status: Sequence[tuple[str, float | None, int | None]],
     bootstrap_val_iou: str,
@@ -368,9 +382,11 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
         f"page written {today()} on {machine_description()}.\n"
     )
     add("## At a glance\n")
+    segmentor = str(cfg.get("undraped", {}).get("segmentor", "model"))
     glance = at_a_glance(
         [(step.name, *stages.status(step.name)) for step in plan],
-        _val_iou(logs, "bootstrap"),
+        _val_iou(logs, "bootstrap") if segmentor == "model"
+        else f"none (undraped.segmentor={segmentor})",
         read_json(out / "metrics" / "annotation.json"),
         read_json(out / "metrics" / "localisation.json"),
         stages.wall_seconds([step.name for step in plan]),
@@ -385,16 +401,25 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
         "Each recording starts undraped; the robots are then draped in place and the motion "
         "is replayed and continued under the drape.\n"
     )
-    add(
-        "**Bootstrap (stands in for SAM 2).** The paper segments the undraped robot with the "
-        "foundation model SAM 2 to localise it before draping. roboseg ships no SAM 2, so a "
-        "calibrated lab rig stands in: the `lab_*` recordings are annotated from their own "
-        "`/tf_static` calibration, a small segmenter is trained on their undraped frames and "
-        "exported, and that model segments the undraped phase of every operating-room "
-        "recording. Nothing downstream reads the operating-room ground truth except the "
-        "evaluation on this page.\n"
-    )
-    rows = lab_rows(layout.lab)
+    if segmentor == "model":
+        add(
+            "**Bootstrap (stands in for SAM 2).** The paper segments the undraped robot with the "
+            "foundation model SAM 2 to localise it before draping. roboseg ships no SAM 2, so a "
+            "calibrated lab rig stands in: the `lab_*` recordings are annotated from their own "
+            "`/tf_static` calibration, a small segmenter is trained on their undraped frames and "
+            "exported, and that model segments the undraped phase of every operating-room "
+            "recording. Nothing downstream reads the operating-room ground truth except the "
+            "evaluation on this page.\n"
+        )
+    else:
+        add(
+            "**Undraped masks without a model.** The paper segments the undraped robot with the "
+            f"foundation model SAM 2; here `segmentor={segmentor}` makes the masks of every "
+            "operating-room recording's undraped phase from that recording alone (no lab rig, "
+            "no trained model). Nothing downstream reads the operating-room ground truth "
+            "except the evaluation on this page.\n"
+        )
+    rows = lab_rows(layout.lab) if segmentor == "model" else []
     rows += [[r.stem, "operating room", r.split, r.robots, r.seed] for r in layout.study]
     add(md_table(["recording", "role", "split", "robots", "seed (camera placement)"], rows))
 
@@ -406,7 +431,10 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
     else:
         add(
             "The undraped phase of each operating-room recording is registered with the camera "
-            "swarm + SDR on the bootstrap segmentation; the "
+            f"swarm + SDR on the masks of `undraped.segmentor={segmentor}` (column *undraped "
+            "masks*; *+ self-training N, kept k*: N rounds of fine-tuning a segmenter on the "
+            "recording's own frames labelled by the estimate, round k's estimate kept, 0 being "
+            "the first registration); the "
             f"{cfg.annotate.phase} phase is then annotated with that estimate "
             "(`roboseg-annotate calibration=…`). Columns: the estimate's error against the "
             "simulator's `/tf_static` over every undraped frame (tool centre: median and "
@@ -418,7 +446,7 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
             a = row["annotation"]
             for reg in row["registration"]:
                 rows.append([
-                    row["recording"], row["split"], reg["robot"],
+                    row["recording"], row["split"], reg["robot"], _masks_of(reg),
                     "yes" if reg["converged"] else "**no**",
                     f"{fmt(reg['tool_median_mm'], 1)} ({fmt(reg['tool_q1_mm'], 1)}–"
                     f"{fmt(reg['tool_q3_mm'], 1)})",
@@ -426,7 +454,8 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
                     a["frames"], f"{fmt(a['iou_mean'], 3)} ± {fmt(a['iou_std'], 3)}",
                     fmt(a["iou_min"], 3),
                 ])
-        add(md_table(["recording", "split", "robot", "converged", "tool error [mm]",
+        add(md_table(["recording", "split", "robot", "undraped masks", "converged",
+                      "tool error [mm]",
                       "base error [mm]", "rotation [°]", "annotated frames",
                       "IoU vs simulator", "min IoU"], rows))
 
