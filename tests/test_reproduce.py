@@ -258,8 +258,11 @@ def test_undraped_segmentor_chooses_the_bootstrap_or_none(tmp_path: Path, segmen
     assert argv[-1] == "self_training.rounds=1"
     draped = plan["register_draped_sdr_robot_0"].argv
     assert f"model={layout.onnx(cfg.localise.cpu.sdr)}" in draped
+    # the operating-room recordings are sessions of one site; lab recordings random rooms
+    assert "site=1" in plan["simulate_or_val_00"].argv
     if segmentor == "model":
         assert "train_bootstrap" in bootstrap and "simulate_lab_train_00" in bootstrap
+        assert not any(a.startswith("site=") for a in plan["simulate_lab_train_00"].argv)
         assert f"model={layout.bootstrap_onnx}" in argv and "segmentor=motion" not in argv
     else:  # no lab rig, no model: the registrations name the segmentor
         assert bootstrap == []

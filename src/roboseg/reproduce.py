@@ -634,8 +634,9 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
     undraped_model = layout.bootstrap_onnx if segmentor == "model" else None
     undraped_extra = [*([] if segmentor == "model" else [f"segmentor={segmentor}"]),
                       *cfg.get("undraped", {}).get("overrides", [])]
+    site = cfg.operating_room.get("site")
     for rec in layout.study:
-        steps.append(simulate(rec, []))
+        steps.append(simulate(rec, [] if site is None else [f"site={int(site)}"]))
     for rec in layout.study:
         for robot in robots_of(rec):
             steps.append(Step(
