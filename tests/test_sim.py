@@ -588,6 +588,16 @@ def test_sessions_of_a_site_share_room_side_and_drape_kind(tmp_path):
         eye = np.linalg.inv(T)[:3, 3]  # camera centre in the base frame of robot 0
         azimuths.append(math.atan2(eye[1] - 0.0, eye[0] - 0.1))
     assert len(kinds) == 1
+    # a two-robot session of a site drapes both robots as its one-robot sessions (site 1: a
+    # second draw from the site's drape stream would be another kind)
+    one, two = (
+        simulate_recording(
+            SimConfig(frames=1, seed=9, site=1, robots=n, distance=(2.0, 2.5), **TINY),
+            tmp_path / f"site1_{n}.mcap",
+        ).drape_kinds
+        for n in (1, 2)
+    )
+    assert two == one * 2
     for az in azimuths:  # target jitter of a few cm moves the azimuth by a few degrees
         off = math.degrees(math.remainder(az - draws.azimuth, 2 * math.pi))
         assert abs(off) <= 20.0 + 8.0

@@ -265,10 +265,12 @@ def _build_robots(
     cfg: SimConfig, rng: np.random.Generator, drape_rng: np.random.Generator | None = None
 ) -> list[_Robot]:
     """The robots of the scene; their drape parameters come from ``drape_rng`` when given (a
-    site's), their folds, tape and motion from ``rng``."""
+    site's: one draw, the same drape on every robot of the site), else one draw from ``rng``
+    per robot; their folds, tape and motion from ``rng``."""
     full = load_robot(cfg.urdf)
     closed = is_closed(full.vertices.double().numpy(), full.faces.numpy(), full.vertex_link.numpy())
     log.info("robot %s: mesh %s", full.name, "closed" if closed else "open (no face culling)")
+    site_params = None if drape_rng is None else sample_drape_params(drape_rng)
     out = []
     for i in range(cfg.robots):
         if i == 0:
@@ -277,7 +279,7 @@ def _build_robots(
             T = yaw_transform(
                 rng.uniform(1.05, 1.35), rng.uniform(-0.5, 0.5), math.pi + rng.uniform(-0.4, 0.4)
             )
-        params = sample_drape_params(rng if drape_rng is None else drape_rng)
+        params = sample_drape_params(rng) if site_params is None else site_params
         drape = Drape.around(full.vertices, full.vertex_link, params, rng)
         lower, upper = full.lower.double().numpy(), full.upper.double().numpy()
         n_u = undraped_count(cfg.frames, cfg.undraped_fraction)
