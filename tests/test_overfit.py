@@ -34,12 +34,14 @@ MAX_STEPS, TARGET = 200, 0.95
 
 
 def default_presets() -> list[str]:
-    """Model presets of ``make train`` (experiment default) and of ``make reproduce``'s CPU
-    recipe (bootstrap and models), read from the configs so the test follows the defaults."""
+    """Model presets of ``make train`` (experiment default), of ``make reproduce``'s CPU
+    recipe (bootstrap and models) and of roboseg-register's self-training, read from the
+    configs so the test follows the defaults."""
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         train = compose("train", overrides=["experiment=default", "data.root=x"])
         repro = compose("reproduce")
-    names = {str(train.model.name)}
+        register = compose("register")
+    names = {str(train.model.name), str(register.self_training.model)}
     overrides = list(repro.lab.overrides)
     for model in repro.recipes.cpu:
         overrides += list(model.overrides)
