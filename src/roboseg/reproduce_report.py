@@ -395,10 +395,14 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
 
     # study
     add("## Study\n")
+    site = cfg.operating_room.get("site")
     add(
         "Shaped like the paper's (Table S3): several single-robot training recordings with "
-        "different camera placements, one validation recording and a two-robot test recording. "
-        "Each recording starts undraped; the robots are then draped in place and the motion "
+        "different camera placements, one validation recording and a two-robot test recording"
+        + (f", all sessions of one operating room (simulator site {site}: room, drape kind and "
+           "the camera's side of the table shared; placement, people, light and motion per "
+           "session)" if site is not None else ", each in a room of its own")
+        + ". Each recording starts undraped; the robots are then draped in place and the motion "
         "is replayed and continued under the drape.\n"
     )
     if segmentor == "model":
