@@ -563,7 +563,7 @@ def _register_argv(
 
 def undraped_segmentor(cfg: DictConfig) -> str:
     """``undraped.segmentor`` of ``cfg``: ``model`` (the lab bootstrap) or ``motion``."""
-    kind = str(cfg.get("undraped", {}).get("segmentor", "model"))
+    kind = str(cfg.undraped.segmentor)
     if kind not in UNDRAPED_SEGMENTORS:
         raise SystemExit(
             f"undraped.segmentor={kind}: not one of {', '.join(UNDRAPED_SEGMENTORS)} (a prompt "
@@ -633,7 +633,7 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
     # 2. operating room: register undraped (no truth), self-annotate with the estimate
     undraped_model = layout.bootstrap_onnx if segmentor == "model" else None
     undraped_extra = [*([] if segmentor == "model" else [f"segmentor={segmentor}"]),
-                      *cfg.get("undraped", {}).get("overrides", [])]
+                      *cfg.undraped.overrides]
     site = cfg.operating_room.get("site")
     for rec in layout.study:
         steps.append(simulate(rec, [] if site is None else [f"site={int(site)}"]))

@@ -382,7 +382,9 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
         f"page written {today()} on {machine_description()}.\n"
     )
     add("## At a glance\n")
-    segmentor = str(cfg.get("undraped", {}).get("segmentor", "model"))
+    from roboseg.reproduce import undraped_segmentor
+
+    segmentor = undraped_segmentor(cfg)
     glance = at_a_glance(
         [(step.name, *stages.status(step.name)) for step in plan],
         _val_iou(logs, "bootstrap") if segmentor == "model"
