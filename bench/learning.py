@@ -35,7 +35,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.common import format_table  # noqa: E402
 from roboseg.config import CONF_DIR  # noqa: E402
-from roboseg.pipeline import Stages, prepare_data  # noqa: E402
+from roboseg.pipeline import prepare_data  # noqa: E402
+from roboseg.stages import Stages  # noqa: E402
 
 log = logging.getLogger("bench.learning")
 

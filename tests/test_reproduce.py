@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from roboseg.reproduce import ReproduceStages
 from roboseg.reproduce_report import at_a_glance, frame_errors_mm, md_table, portable
+from roboseg.stages import Stages
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -106,7 +106,7 @@ def test_reproduce_tiny_study_then_resume(tmp_path: Path) -> None:
 
 
 def test_stages_tolerant_failure_is_recorded_and_skipped(tmp_path: Path) -> None:
-    stages = ReproduceStages(tmp_path, total=3, runner="fork")
+    stages = Stages(tmp_path, total=3, runner="fork")
     assert stages.run("ok", [sys.executable, "-c", "print('hello')"])
     assert (tmp_path / "logs" / "ok.stdout").read_text() == "hello\n"
     assert stages.run("bad", [sys.executable, "-c", "raise SystemExit(3)"], tolerant=True)
@@ -118,9 +118,9 @@ def test_stages_tolerant_failure_is_recorded_and_skipped(tmp_path: Path) -> None
 
 
 def test_stages_side_by_side_overlap_and_count_once_in_wall_time(tmp_path: Path) -> None:
-    from roboseg.reproduce import Step
+    from roboseg.stages import Step
 
-    stages = ReproduceStages(tmp_path, total=3, runner="fork")
+    stages = Stages(tmp_path, total=3, runner="fork")
     nap = "import time; time.sleep(1.5); print('{}')"
     steps = [
         Step("a", [sys.executable, "-c", nap.format("a")], parallel=True),
@@ -145,7 +145,7 @@ def test_stages_side_by_side_overlap_and_count_once_in_wall_time(tmp_path: Path)
 
 
 def test_stages_forked_function(tmp_path: Path) -> None:
-    stages = ReproduceStages(tmp_path, total=2, runner="fork")
+    stages = Stages(tmp_path, total=2, runner="fork")
     target = tmp_path / "written.txt"
 
     def work() -> None:

@@ -1,8 +1,10 @@
 """``make train``: the main job on its embedded default, as the commands a user would type.
 
-simulate → annotate → train → export → evaluate, each stage a ``roboseg-*`` command run in a
-subprocess, each finished stage marked with a ``.done`` file so an interrupted run resumes where
-it stopped. Run: ``python -m roboseg.pipeline [out=DIR] [key=value ...]`` (Hydra overrides of
+simulate → annotate → train → export → evaluate, each stage a ``roboseg-*`` command
+(:class:`roboseg.stages.Stages`: forked from this process, which imports the libraries once; its
+output also in ``out/logs/<stage>.log``), each finished stage marked with a ``.done`` file so an
+interrupted run resumes where it stopped. Run:
+``python -m roboseg.pipeline [out=DIR] [key=value ...]`` (Hydra overrides of
 ``conf/pipeline.yaml``).
 """
 
@@ -10,51 +12,16 @@ from __future__ import annotations
 
 import csv
 import logging
-import shlex
 import shutil
-import subprocess
-import sys
-import time
-from collections.abc import Sequence
 from pathlib import Path
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from roboseg.config import CONF_DIR
+from roboseg.stages import Stages, preimport, script
 
 log = logging.getLogger("roboseg.pipeline")
-
-
-def script(name: str) -> str:
-    """The console script ``name`` beside this interpreter (the project's venv)."""
-    candidate = Path(sys.executable).with_name(name)
-    return str(candidate) if candidate.exists() else name
-
-
-class Stages:
-    """Runs named stages once: a stage whose marker exists is skipped (resumable)."""
-
-    def __init__(self, root: Path) -> None:
-        self.root = root
-        self.root.mkdir(parents=True, exist_ok=True)
-
-    def marker(self, name: str) -> Path:
-        return self.root / f".{name}.done"
-
-    def run(self, name: str, argv: Sequence[str]) -> bool:
-        """Run ``argv`` as stage ``name`` unless it already finished; raise on failure."""
-        if self.marker(name).exists():
-            print(f"[{name}] done already, skipped ({self.marker(name)})", flush=True)
-            return False
-        print(f"[{name}] $ {shlex.join(argv)}", flush=True)
-        t0 = time.perf_counter()
-        proc = subprocess.run(list(argv))
-        if proc.returncode != 0:
-            raise SystemExit(f"[{name}] failed with exit status {proc.returncode}")
-        self.marker(name).write_text(f"{time.perf_counter() - t0:.1f} s\n")
-        print(f"[{name}] finished in {time.perf_counter() - t0:.0f} s", flush=True)
-        return True
 
 
 def prepare_data(cfg: DictConfig, stages: Stages, out: Path) -> Path:
@@ -86,7 +53,10 @@ def prepare_data(cfg: DictConfig, stages: Stages, out: Path) -> Path:
 def run_pipeline(cfg: DictConfig) -> Path:
     """Run the stages of ``cfg`` (see ``conf/pipeline.yaml``); return the model's ONNX path."""
     out = Path(cfg.out).resolve()
-    stages = Stages(out)
+    total = sum(int(n) for n in cfg.simulate.recordings.values()) + 3 + len(cfg.evaluate.runs)
+    stages = Stages(out, total, str(cfg.get("runner", "fork")))
+    if stages.runner == "fork" and not stages.marker(f"evaluate_{cfg.evaluate.headline}").exists():
+        preimport()
     train_dir = out / "train"
     annotated = prepare_data(cfg, stages, out)
     stages.run(

@@ -8,11 +8,8 @@ errors are in millimetres.
 
 from __future__ import annotations
 
-import datetime as _dt
 import json
 import logging
-import os
-import platform
 import shutil
 import sys
 from collections.abc import Mapping, Sequence
@@ -27,6 +24,7 @@ from roboseg.errors import RobosegError
 from roboseg.evaluation.metrics import binary_iou
 from roboseg.recording import RecordingReader
 from roboseg.robot import RobotModel
+from roboseg.stages import machine_description, today
 
 log = logging.getLogger("roboseg.reproduce")
 
@@ -35,24 +33,6 @@ TRUTH_METADATA = "roboseg_truth"
 
 
 # --- machine ---------------------------------------------------------------------------------
-
-
-def machine_description() -> str:
-    """``<CPU model>, <n> cores, <OS>`` of this machine."""
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.lower().startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{model}, {os.cpu_count()} logical cores, {platform.system()} {platform.release()}"
-
-
-def today() -> str:
-    """The local date and time, ISO format to the minute."""
-    return _dt.datetime.now().isoformat(timespec="minutes")
 
 
 # --- annotation quality ----------------------------------------------------------------------
