@@ -56,3 +56,17 @@ def test_a_rerun_skips_finished_stages_and_reports_the_same_figures(
         assert f"[{name}] done already, skipped" in proc.stdout
         assert f"[{name}] $ " not in proc.stdout
     assert proc.stdout.strip().splitlines()[-1] == first.strip().splitlines()[-1]
+
+
+def test_the_same_seed_gives_the_same_recordings_labels_and_figures(
+    tiny_run: tuple[Path, str], tmp_path: Path,
+) -> None:
+    out, first = tiny_run
+    proc = _pipeline(tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    for rec in sorted((out / "annotated").glob("*.mcap")):
+        assert (tmp_path / "annotated" / rec.name).read_bytes() == rec.read_bytes(), rec.name
+    for name in ("eval", "eval_val_undraped", "eval_val"):
+        a = (out / name / "per_frame_iou.csv").read_text()
+        assert (tmp_path / name / "per_frame_iou.csv").read_text() == a, name
+    assert proc.stdout.strip().splitlines()[-1] == first.strip().splitlines()[-1]
