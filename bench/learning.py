@@ -1,6 +1,6 @@
 """Learning curves: validation IoU against training seconds for a matrix of training recipes.
 
-``python -m bench.learning [--study site random] [--recipes NAME ...] [--budget 240]
+``python -m bench.learning [--study site random] [--recipes NAME ...] [--budget 240] [--steps N]
 [--val-every 40] [--val-frames 48] [--out outputs/bench/learning]``
 
 Every recipe is a set of Hydra overrides of ``conf/train.yaml`` on top of ``experiment=default``
@@ -116,17 +116,20 @@ class Curve(pl.Callback):
 
 
 def run_recipe(data: Path, overrides: list[str], budget: float, val_every: int,
-               val_frames: int, seed: int) -> dict[str, Any]:
-    """Train one recipe for ``budget`` seconds; its curve and final step time."""
+               val_frames: int, seed: int, steps: int | None = None) -> dict[str, Any]:
+    """Train one recipe for ``budget`` seconds (or ``steps``, whichever ends first); its curve
+    and final step time. ``steps`` (default: the experiment's ``trainer.max_steps``) is also
+    the length of the learning-rate schedule and of the augmentation ramp."""
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose("train", overrides=[
             "experiment=default", f"data.root={data}", f"seed={seed}", "paths.output_dir=/tmp",
-            *overrides])
+            *overrides, *([] if steps is None else [f"trainer.max_steps={steps}"])])
     pl.seed_everything(seed, workers=True)
     batch = int(cfg.data.batch_size)
     curve = Curve(budget)
     trainer = pl.Trainer(
-        accelerator="cpu", devices=1, max_steps=-1, max_time=None, max_epochs=-1,
+        accelerator="cpu", devices=1, max_steps=int(cfg.trainer.max_steps), max_time=None,
+        max_epochs=-1,
         val_check_interval=val_every, check_val_every_n_epoch=None,
         limit_val_batches=max(1, val_frames // batch), num_sanity_val_steps=0,
         callbacks=[curve], logger=False, enable_checkpointing=False,
@@ -182,6 +185,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--val-every", type=int, default=100, help="steps between validations")
     ap.add_argument("--val-frames", type=int, default=10_000,
                     help="at most this many draped val frames scored (default: all)")
+    ap.add_argument("--steps", type=int, default=None,
+                    help="steps per recipe, also the length of its lr schedule and augmentation "
+                         "ramp (default: the experiment's trainer.max_steps)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=Path("outputs/bench/learning"))
     args = ap.parse_args(argv)
@@ -196,8 +202,8 @@ def main(argv: list[str] | None = None) -> int:
         for name in args.recipes:
             log.info("[%s] %s: %s", study, name, " ".join(RECIPES[name]))
             res = run_recipe(data, RECIPES[name], args.budget, args.val_every, args.val_frames,
-                             args.seed)
-            res["budget"] = args.budget
+                             args.seed, args.steps)
+            res["budget"], res["schedule_steps"] = args.budget, args.steps
             results.setdefault(study, {})[name] = res
             store.write_text(json.dumps(results, indent=1))
     rows = []

@@ -264,9 +264,14 @@ def test_undraped_segmentor_chooses_the_bootstrap_or_none(tmp_path: Path, segmen
         assert "train_bootstrap" in bootstrap and "simulate_lab_train_00" in bootstrap
         assert not any(a.startswith("site=") for a in plan["simulate_lab_train_00"].argv)
         assert f"model={layout.bootstrap_onnx}" in argv and "segmentor=motion" not in argv
-    else:  # no lab rig, no model: the registrations name the segmentor
+        # the recipe's models start from the bootstrap's weights (model_init.cpu=bootstrap)
+        start = f"model.weights_path={layout.bootstrap / 'model.ckpt'}"
+        assert all(start in plan[f"train_{m.name}"].argv for m in layout.models)
+    else:  # no lab rig, no model: the registrations name the segmentor, models start random
         assert bootstrap == []
         assert "segmentor=motion" in argv and not any(a.startswith("model=") for a in argv)
+        assert not any("weights_path" in a for m in layout.models
+                       for a in plan[f"train_{m.name}"].argv)
     cfg.undraped.segmentor = "prompt"
     with pytest.raises(SystemExit, match="undraped.segmentor=prompt: not one of model, motion"):
         build_plan(cfg, layout)

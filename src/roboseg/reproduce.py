@@ -307,6 +307,20 @@ def undraped_segmentor(cfg: DictConfig) -> str:
     return kind
 
 
+def model_init(cfg: DictConfig) -> str:
+    """``model_init`` of ``cfg.recipe``: ``bootstrap`` (the recipe's models start from the lab
+    bootstrap's weights) or ``scratch``; ``scratch`` when ``undraped.segmentor`` skips the lab
+    bootstrap."""
+    init = str((cfg.get("model_init") or {}).get(str(cfg.recipe), "scratch"))
+    if init not in ("bootstrap", "scratch"):
+        raise SystemExit(f"model_init.{cfg.recipe}={init}: not one of bootstrap, scratch")
+    if init == "bootstrap" and undraped_segmentor(cfg) != "model":
+        log.warning("model_init.%s=bootstrap: no lab bootstrap with undraped.segmentor=%s; "
+                    "the models start from scratch", cfg.recipe, cfg.undraped.segmentor)
+        return "scratch"
+    return init
+
+
 def _train_steps(
     layout: Layout, name: str, experiment: str, root: Path, overrides: Sequence[str],
     cfg: DictConfig, ckpt: Path, onnx: Path,
@@ -397,10 +411,13 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
                       fn=lambda: measure_annotation(layout, subsets[0], cfg)))
 
     # 3. the recipe's models: train, export, evaluate on the test recording
+    init = model_init(cfg)
+    start = [f"model.weights_path={layout.bootstrap / 'model.ckpt'}"] if init == "bootstrap" else []
     for m in layout.models:
         steps += _train_steps(
             layout, m.name, m.experiment, layout.dataset(m.subset),
-            [*m.overrides, *cfg.train_overrides], cfg, layout.ckpt(m.name), layout.onnx(m.name),
+            [*start, *m.overrides, *cfg.train_overrides], cfg, layout.ckpt(m.name),
+            layout.onnx(m.name),
         )
     models = ",".join(str(layout.onnx(m.name)) for m in layout.models)
     steps.append(Step("evaluate", [

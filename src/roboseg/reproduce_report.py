@@ -362,7 +362,7 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
         f"page written {today()} on {machine_description()}.\n"
     )
     add("## At a glance\n")
-    from roboseg.reproduce import undraped_segmentor
+    from roboseg.reproduce import model_init, undraped_segmentor
 
     segmentor = undraped_segmentor(cfg)
     glance = at_a_glance(
@@ -453,8 +453,10 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
     add(
         f"IoU (mean ± std over frames) on the {cfg.annotate.phase} frames of the two-robot test "
         f"recording against {labels}. Models of the `{cfg.recipe}` recipe, all trained on the "
-        "self-annotated operating-room recordings; `val IoU` is the best checkpoint's IoU on "
-        "the validation recording (self-annotated labels).\n"
+        "self-annotated operating-room recordings, starting from "
+        + ("the lab bootstrap's weights" if model_init(cfg) == "bootstrap" else "random weights")
+        + "; `val IoU` is the best checkpoint's IoU on the validation recording (self-annotated "
+        "labels).\n"
     )
     add(table.read_text() if table.is_file() else "_not evaluated_\n")
     add("\n" + md_table(
