@@ -95,6 +95,10 @@ class Layout:
         return self.out / "bootstrap"
 
     @property
+    def bootstrap_ckpt(self) -> Path:
+        return self.bootstrap / "model.ckpt"
+
+    @property
     def bootstrap_onnx(self) -> Path:
         return self.bootstrap / "model.onnx"
 
@@ -376,7 +380,7 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
             layout, "bootstrap", str(cfg.lab.experiment), lab_root,
             [f"trainer.max_steps={int(cfg.lab.steps)}", "data.val_phase=undraped",
              *cfg.lab.overrides],
-            cfg, layout.bootstrap / "model.ckpt", layout.bootstrap_onnx,
+            cfg, layout.bootstrap_ckpt, layout.bootstrap_onnx,
         )
 
     # 2. operating room: register undraped (no truth), self-annotate with the estimate
@@ -412,7 +416,7 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
 
     # 3. the recipe's models: train, export, evaluate on the test recording
     init = model_init(cfg)
-    start = [f"model.weights_path={layout.bootstrap / 'model.ckpt'}"] if init == "bootstrap" else []
+    start = [f"model.weights_path={layout.bootstrap_ckpt}"] if init == "bootstrap" else []
     for m in layout.models:
         steps += _train_steps(
             layout, m.name, m.experiment, layout.dataset(m.subset),
