@@ -58,12 +58,19 @@ RECIPES: dict[str, list[str]] = {
     # augmentation schedule (the windows stay)
     "default_noaug": _NOAUG,
     "default_aug_from_step_0": ["augment.ramp_steps=0"],
+    # ramped over 1600 steps: with --steps 800, half the paper's strength by the end
+    "default_aug_ramp_1600": ["augment.ramp_steps=1600"],
     # encoder (same decoder, input and schedule)
     "regnety_004": ["model=unet_regnety_004"],
     "resnet18": ["model=unet_resnet18"],
     # input: whole frames squashed to 144×256 instead of windows of native frames
     "whole_144x256": _WHOLE,
     "regnety_004_whole_144x256": ["model=unet_regnety_004", *_WHOLE],
+    # input: frames upsampled 2× (540×960) before the 144×256 windows, so the encoder's
+    # stride-4 features fall every 2 native pixels (links are 5-12 px wide at 270×480)
+    "default_input_2x": ["data.image_size=[540,960]"],
+    # windows: 80 % centred on a robot pixel (default 50 %)
+    "default_robot_windows_0.8": ["augment.crop.p_robot=0.8"],
     # learning rate
     "default_lr3e-3": ["module.lr=3.0e-3"],
     # arithmetic: float32 in the usual NCHW layout
