@@ -242,10 +242,12 @@ def test_lab_recordings_fold_into_one_row_per_split() -> None:
 
 
 @pytest.mark.parametrize("segmentor", ["model", "motion"])
-def test_undraped_segmentor_chooses_the_bootstrap_or_none(tmp_path: Path, segmentor: str) -> None:
+def test_undraped_segmentor_chooses_the_bootstrap_or_none(
+    tmp_path: Path, segmentor: str, caplog: pytest.LogCaptureFixture
+) -> None:
     from omegaconf import OmegaConf
 
-    from roboseg.reproduce import Layout, build_plan, model_specs, plan_study
+    from roboseg.reproduce import Layout, build_plan, model_init, model_specs, plan_study
 
     cfg = OmegaConf.load(ROOT / "conf" / "reproduce.yaml")
     cfg.undraped.segmentor = segmentor
@@ -272,6 +274,10 @@ def test_undraped_segmentor_chooses_the_bootstrap_or_none(tmp_path: Path, segmen
         assert "segmentor=motion" in argv and not any(a.startswith("model=") for a in argv)
         assert not any("weights_path" in a for m in layout.models
                        for a in plan[f"train_{m.name}"].argv)
+        # the fallback is warned of once, where the plan is made; the page asks quietly
+        assert sum("start from scratch" in r.getMessage() for r in caplog.records) == 1
+        caplog.clear()
+        assert model_init(cfg, warn=False) == "scratch" and not caplog.records
     cfg.undraped.segmentor = "prompt"
     with pytest.raises(SystemExit, match="undraped.segmentor=prompt: not one of model, motion"):
         build_plan(cfg, layout)

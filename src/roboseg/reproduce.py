@@ -311,16 +311,18 @@ def undraped_segmentor(cfg: DictConfig) -> str:
     return kind
 
 
-def model_init(cfg: DictConfig) -> str:
+def model_init(cfg: DictConfig, warn: bool = True) -> str:
     """``model_init`` of ``cfg.recipe``: ``bootstrap`` (the recipe's models start from the lab
     bootstrap's weights) or ``scratch``; ``scratch`` when ``undraped.segmentor`` skips the lab
-    bootstrap."""
+    bootstrap (logged as a warning when ``warn``: once, where the plan is made)."""
     init = str((cfg.get("model_init") or {}).get(str(cfg.recipe), "scratch"))
     if init not in ("bootstrap", "scratch"):
         raise SystemExit(f"model_init.{cfg.recipe}={init}: not one of bootstrap, scratch")
     if init == "bootstrap" and undraped_segmentor(cfg) != "model":
-        log.warning("model_init.%s=bootstrap: no lab bootstrap with undraped.segmentor=%s; "
-                    "the models start from scratch", cfg.recipe, cfg.undraped.segmentor)
+        if warn:
+            log.warning("model_init.%s=bootstrap: no lab bootstrap with "
+                        "undraped.segmentor=%s; the models start from scratch", cfg.recipe,
+                        cfg.undraped.segmentor)
         return "scratch"
     return init
 

@@ -454,7 +454,8 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
         f"IoU (mean ± std over frames) on the {cfg.annotate.phase} frames of the two-robot test "
         f"recording against {labels}. Models of the `{cfg.recipe}` recipe, all trained on the "
         "self-annotated operating-room recordings, starting from "
-        + ("the lab bootstrap's weights" if model_init(cfg) == "bootstrap" else "random weights")
+        + ("the lab bootstrap's weights" if model_init(cfg, warn=False) == "bootstrap"
+           else "random weights")
         + "; `val IoU` is the best checkpoint's IoU on the validation recording (self-annotated "
         "labels).\n"
     )
