@@ -31,7 +31,7 @@ from roboseg.sim.drape import (
 )
 from roboseg.sim.frame import Surface, ViewLight, composite_view
 from roboseg.sim.lighting import drift, sample_lighting
-from roboseg.sim.occluders import Capsule, catmull_rom, draw_capsules
+from roboseg.sim.occluders import Capsule, catmull_rom, draw_capsules, sample_walkers
 from roboseg.sim.scene import box_pixels, ray_box, ray_ellipsoid
 from roboseg.sim.shading import (
     barycentric,
@@ -350,6 +350,39 @@ def test_same_seed_gives_identical_images(one_robot, tmp_path):
     assert _frames(other)[0].left.tobytes() != _frames(path)[0].left.tobytes()
 
 
+def test_walkers_cross_the_line_of_sight_within_their_window():
+    eye, target = np.array([2.0, 1.0, 1.2]), np.array([0.0, 0.0, 0.5])
+    walkers = sample_walkers(np.random.default_rng(0), eye, target, -0.8, 20, (1.0, 3.0))
+    view = (target - eye)[:2] / np.linalg.norm((target - eye)[:2])
+    for w in walkers:
+        assert 1.0 <= w.t_cross <= 3.0 and 0.8 <= w.speed <= 1.4
+        at = w.position(w.t_cross)
+        assert at[2] == -0.8  # on the floor
+        off = at[:2] - eye[:2]
+        assert abs(off[0] * view[1] - off[1] * view[0]) < 1e-9  # on the line of sight
+        assert abs(float(w.direction[:2] @ view)) <= math.sin(0.6) + 1e-9  # across it
+        # walking pace: 1 s later the person is `speed` m farther along the path
+        assert np.linalg.norm(w.position(w.t_cross + 1.0) - at) == pytest.approx(w.speed)
+        cap = w.capsules(w.t_cross)[-1]  # a person ~1.75 m tall, the cap on top
+        assert cap.colour == w.cap and cap.p0[2] == pytest.approx(at[2] + 1.65)
+    fractions = [np.linalg.norm(w.cross[:2] - eye[:2]) / np.linalg.norm((target - eye)[:2])
+                 for w in walkers]
+    assert min(fractions) < 1.0 < max(fractions)  # in front of the robot and behind it
+
+
+def test_walkers_change_the_undraped_images_only(one_robot, tmp_path):
+    path, _ = one_robot
+    walked = tmp_path / "walked.mcap"
+    simulate_recording(SimConfig(frames=5, seed=7, walkers=2, **TINY), walked)
+    plain, busy = _frames(path), _frames(walked)
+    for a, b in zip(plain, busy, strict=True):  # robots, joints and labels are the same
+        np.testing.assert_array_equal(a.joints["robot_0"], b.joints["robot_0"])
+        np.testing.assert_array_equal(a.masks["left/robot_mask_gt"],
+                                      b.masks["left/robot_mask_gt"])
+    changed = (plain[0].left.astype(int) - busy[0].left.astype(int)).any(-1)
+    assert changed.mean() > 0.01  # someone walks through the undraped view
+
+
 def test_worker_processes_write_the_same_bytes(one_robot, tmp_path):
     path, summary = one_robot
     assert 0.0 < summary.setup_seconds < summary.seconds
@@ -439,6 +472,7 @@ def test_cli_nonexistent_urdf_is_one_line(tmp_path):
         ("robots=3", "robots"),
         ("scenario=party", "scenario"),
         ("camera.width=abc", "camera.width"),
+        ("walkers=-1", "walkers"),
     ],
 )
 def test_cli_bad_values_exit_1_with_one_line(tmp_path, capsys, override, needle):

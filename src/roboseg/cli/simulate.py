@@ -60,6 +60,7 @@ def sim_config(cfg: DictConfig) -> SimConfig:
         workers=_number(cfg, "workers", int),
         site=None if OmegaConf.select(cfg, "site") is None else _number(cfg, "site", int),
         site_azimuth_deg=float(OmegaConf.select(cfg, "site_azimuth_deg", default=60.0)),
+        walkers=int(OmegaConf.select(cfg, "walkers", default=0)),
     )
 
 

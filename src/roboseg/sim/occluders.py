@@ -1,4 +1,5 @@
-"""Occluders in front of (and around) the robot: cables, instruments, staff in scrubs, tape.
+"""Occluders in front of (and around) the robot: cables, instruments, staff in scrubs (standing
+or walking across the room), tape.
 
 Every occluder is a set of 3D capsules (segment + radius, world frame, metres) that move over
 time. A capsule projects to a thick round-capped line whose width is 2·f·radius/z, so each
@@ -116,6 +117,26 @@ class Instrument:
         ]
 
 
+def person_capsules(
+    base: np.ndarray, direction: np.ndarray, swing: float, scrubs: Rgb, cap: Rgb
+) -> list[Capsule]:
+    """A person in scrubs standing at floor point ``base`` facing across ``direction`` (unit,
+    horizontal): legs, torso, arms, head with cap; one hand ``swing`` m along ``direction``."""
+    up = np.array([0.0, 0.0, 1.0])
+    side = np.cross(up, direction)
+    hip, chest, neck = base + up * 0.85, base + up * 1.25, base + up * 1.45
+    hand = chest + side * 0.25 + direction * swing - up * 0.3
+    return [
+        Capsule(base + side * 0.1, hip + side * 0.08, 0.09, scrubs),
+        Capsule(base - side * 0.1, hip - side * 0.08, 0.09, scrubs),
+        Capsule(hip, chest, 0.2, scrubs),
+        Capsule(chest + side * 0.22, hand, 0.06, scrubs),
+        Capsule(chest - side * 0.22, chest - side * 0.25 - up * 0.35, 0.06, scrubs),
+        Capsule(neck + up * 0.12, neck + up * 0.14, 0.11, (0.60, 0.45, 0.38)),
+        Capsule(neck + up * 0.2, neck + up * 0.22, 0.1, cap),
+    ]
+
+
 @dataclass(frozen=True)
 class Staff:
     """A person in scrubs standing at ``foot`` (floor point) who drifts by ``drift`` m along
@@ -131,23 +152,62 @@ class Staff:
 
     def capsules(self, t: float) -> list[Capsule]:
         base = self.foot + self.direction * self.drift * math.sin(self.omega * t + self.phase)
-        up = np.array([0.0, 0.0, 1.0])
-        side = np.cross(up, self.direction)
-        hip, chest, neck = base + up * 0.85, base + up * 1.25, base + up * 1.45
-        arm_swing = 0.15 * math.sin(1.3 * self.omega * t)
-        hand = chest + side * 0.25 + self.direction * arm_swing - up * 0.3
-        return [
-            Capsule(base + side * 0.1, hip + side * 0.08, 0.09, self.scrubs),
-            Capsule(base - side * 0.1, hip - side * 0.08, 0.09, self.scrubs),
-            Capsule(hip, chest, 0.2, self.scrubs),
-            Capsule(chest + side * 0.22, hand, 0.06, self.scrubs),
-            Capsule(chest - side * 0.22, chest - side * 0.25 - up * 0.35, 0.06, self.scrubs),
-            Capsule(neck + up * 0.12, neck + up * 0.14, 0.11, (0.60, 0.45, 0.38)),
-            Capsule(neck + up * 0.2, neck + up * 0.22, 0.1, self.cap),
-        ]
+        swing = 0.15 * math.sin(1.3 * self.omega * t)
+        return person_capsules(base, self.direction, swing, self.scrubs, self.cap)
 
 
-Occluder = Cable | Instrument | Staff
+@dataclass(frozen=True)
+class Walker:
+    """A person walking straight across the room at ``speed`` m/s along ``direction`` (unit,
+    horizontal), at floor point ``cross`` at time ``t_cross`` s (where the path crosses the
+    camera's line of sight); arms swing with the stride."""
+
+    cross: np.ndarray
+    direction: np.ndarray
+    speed: float
+    t_cross: float
+    scrubs: Rgb
+    cap: Rgb
+
+    def position(self, t: float) -> np.ndarray:
+        """Floor point (world, m) at time ``t`` s."""
+        return self.cross + self.direction * self.speed * (t - self.t_cross)
+
+    def capsules(self, t: float) -> list[Capsule]:
+        swing = 0.2 * math.sin(2.0 * math.pi * 0.9 * t)  # ~0.9 strides a second
+        return person_capsules(self.position(t), self.direction, swing, self.scrubs, self.cap)
+
+
+def sample_walkers(
+    rng: np.random.Generator,
+    eye: np.ndarray,
+    target: np.ndarray,
+    floor_z: float,
+    n: int,
+    window: tuple[float, float],
+) -> list[Walker]:
+    """``n`` people walking across the view at 0.8-1.4 m/s, each crossing the camera's line of
+    sight (in front of the robot or behind it) at a time drawn from ``window`` (s), on a path
+    within 35° of square to the line of sight."""
+    view = target - eye
+    reach = float(np.linalg.norm(view[:2]))
+    horizontal = np.array([view[0], view[1], 0.0]) / max(reach, 1e-9)
+    lateral = np.array([-horizontal[1], horizontal[0], 0.0])
+    out = []
+    for _ in range(n):
+        f = rng.uniform(0.4, 0.85) if rng.uniform() < 0.7 else rng.uniform(1.2, 1.6)
+        p = eye + horizontal * f * reach
+        angle = rng.uniform(-0.6, 0.6)
+        d = lateral * math.cos(angle) + horizontal * math.sin(angle)
+        d *= rng.choice([-1.0, 1.0])
+        out.append(Walker(
+            np.array([p[0], p[1], floor_z]), d, float(rng.uniform(0.8, 1.4)),
+            float(rng.uniform(*window)), _choice(rng, SCRUBS), _choice(rng, SCRUBS),
+        ))
+    return out
+
+
+Occluder = Cable | Instrument | Staff | Walker
 
 
 def _choice(rng: np.random.Generator, items: tuple[Rgb, ...]) -> Rgb:

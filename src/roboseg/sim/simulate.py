@@ -44,6 +44,7 @@ from roboseg.sim.occluders import (
     Occluder,
     draw_capsules,
     sample_occluders,
+    sample_walkers,
 )
 from roboseg.sim.scene import StaticScene, render_static, sample_scene
 from roboseg.sim.shading import NoiseBank, pixel_rays, to_uint8, vertex_normals
@@ -84,6 +85,9 @@ class SimConfig:
     site: int | None = None
     #: with ``site``: how far (deg) a session's camera azimuth strays from the site's side
     site_azimuth_deg: float = 60.0
+    #: people walking across the view, each crossing the camera's line of sight during the
+    #: undraped phase (their own random stream: recordings without walkers are unchanged)
+    walkers: int = 0
 
     def validate(self) -> None:
         """Raise :class:`RobosegError` naming the first invalid value."""
@@ -101,6 +105,8 @@ class SimConfig:
             raise RobosegError(f"undraped_fraction must be in [0, 1), got {self.undraped_fraction}")
         if self.fps <= 0:
             raise RobosegError(f"fps must be > 0, got {self.fps}")
+        if self.walkers < 0:
+            raise RobosegError(f"walkers must be >= 0, got {self.walkers}")
         if self.site is not None and not 0.0 <= self.site_azimuth_deg <= 180.0:
             raise RobosegError(
                 f"site_azimuth_deg must be in [0, 180], got {self.site_azimuth_deg}"
@@ -311,8 +317,8 @@ def simulate_recording(cfg: SimConfig, path: str | Path) -> SimSummary:
     cfg.validate()
     t_start = time.perf_counter()
     path = Path(path)
-    streams = np.random.SeedSequence(cfg.seed).spawn(6)
-    rng_robot, rng_cam, rng_scene, rng_occ, rng_light, rng_noise = (
+    streams = np.random.SeedSequence(cfg.seed).spawn(7)  # the first six as before walkers
+    rng_robot, rng_cam, rng_scene, rng_occ, rng_light, rng_noise, rng_walk = (
         np.random.default_rng(s) for s in streams
     )
     site = None if cfg.site is None else site_draws(cfg.site)
@@ -343,6 +349,10 @@ def simulate_recording(cfg: SimConfig, path: str | Path) -> SimSummary:
     )
     occluders = sample_occluders(rng_occ, eye, target, scene.floor_z, incision)
     n_frames = cfg.frames
+    if cfg.walkers:
+        undraped_s = undraped_count(n_frames, cfg.undraped_fraction) / cfg.fps
+        occluders += sample_walkers(rng_walk, eye, target, scene.floor_z, cfg.walkers,
+                                    (0.1 * undraped_s, 0.9 * undraped_s))
     lighting = sample_lighting(rng_light, n_frames / cfg.fps)
     world = _World(
         robots=robots,
@@ -370,6 +380,7 @@ def simulate_recording(cfg: SimConfig, path: str | Path) -> SimSummary:
         "drape_start_stamp_ns": str(drape_start if drape_start is not None else -1),
         "drape_kinds": ",".join(r.drape.params.kind for r in robots),
         "distance_m": f"{float(np.linalg.norm(eye - target)):.3f}",
+        **({"walkers": str(cfg.walkers)} if cfg.walkers else {}),
     }
     root = robots[0].full.root_link
     with RecordingWriter(path, metadata=None) as writer:
