@@ -54,6 +54,7 @@ def tiny_overrides(tmp: Path) -> list[str]:
         f"train_overrides={_quoted(SMALL_TRAIN)}", f"lab.overrides={_quoted(SMALL_TRAIN)}",
         'annotate.overrides=["min_joint_speed=0.0"]', "track.frames=6", MODELS,
         "localise.cpu={sdr: m3, sdr_prior: m4}", "undraped.overrides=[]",
+        "walkers.recordings=[or_train_00]", "walkers.people=1",
         "benches=[{name: echo, cmd: [python, -c, 'print(\"figure 42.0 ms\")']}]",
     ]
 
@@ -88,10 +89,16 @@ def test_reproduce_tiny_study_then_resume(tmp_path: Path) -> None:
     assert len(quality["rows"]) == 3 and len(quality["rows"][2]["registration"]) == 2
     for row in quality["rows"]:
         assert 0.0 <= row["annotation"]["iou_mean"] <= 1.0
+    # the same recording with someone walking through the view, beside the one without
+    walk = json.loads((out / "metrics" / "walkers.json").read_text())
+    assert [(r["recording"], r["people_walking"]) for r in walk["rows"]] == [
+        ("or_train_00", 0), ("or_train_00_walkers", 1)]
+    assert all(r["tool_median_mm"] >= 0 for r in walk["rows"])
 
     page = (tmp_path / "docs" / "results.md").read_text()
     for section in PAGE_SECTIONS:
         assert section in page
+    assert "### People walking through the view" in page and "| or_train_00_walkers | 1 |" in page
     assert "comes from simulated recordings" in page and "SAM 2" in page
     assert "figure 42.0 ms" in page and "logical cores" in page
     figures = tmp_path / "docs" / "results"
@@ -222,6 +229,33 @@ def test_plan_study_gives_every_recording_its_own_seed() -> None:
     cfg.lab.recordings = {"train": 101, "val": 1}  # lab_train_100 lands on lab_val_00's seed
     with pytest.raises(SystemExit, match="lab_train_100 and lab_val_00 would share seed 11000"):
         plan_study(cfg)
+
+
+def test_walkers_repeat_study_recordings_with_people_walking(tmp_path: Path) -> None:
+    from omegaconf import OmegaConf
+
+    from roboseg.reproduce import Layout, build_plan, model_specs, plan_study, plan_walkers
+
+    cfg = OmegaConf.load(ROOT / "conf" / "reproduce.yaml")
+    cfg.walkers = {"recordings": ["or_train_01"], "people": 2}
+    lab, study = plan_study(cfg)
+    walkers = plan_walkers(cfg, study)
+    alone = next(r for r in study if r.stem == "or_train_01")
+    assert [(r.stem, r.seed, r.split) for r in walkers] == [
+        ("or_train_01_walkers", alone.seed, alone.split)]  # same room, placement and motion
+    layout = Layout(tmp_path, tmp_path / "page.md", lab, study, model_specs(cfg), walkers)
+    plan = {step.name: step for step in build_plan(cfg, layout)}
+    sim = plan["simulate_or_train_01_walkers"].argv
+    assert "walkers=2" in sim and f"seed={alone.seed}" in sim and "site=1" in sim
+    reg = plan["register_undraped_or_train_01_walkers_robot_0"]
+    assert reg.parallel and "phase=undraped" in reg.argv
+    assert "walkers_quality" in plan
+    assert not any("or_train_01_walkers" in n for n in plan if n.startswith("annotate_"))
+    cfg.walkers = {"recordings": ["or_train_09"], "people": 2}
+    with pytest.raises(SystemExit, match="walkers.recordings: or_train_09 is not an"):
+        plan_walkers(cfg, study)
+    cfg.walkers = {"recordings": [], "people": 0}
+    assert plan_walkers(cfg, study) == []
 
 
 def test_lab_recordings_fold_into_one_row_per_split() -> None:

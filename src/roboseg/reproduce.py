@@ -83,6 +83,7 @@ class Layout:
     lab: list[Recording] = field(default_factory=list)
     study: list[Recording] = field(default_factory=list)
     models: list[ModelSpec] = field(default_factory=list)
+    walkers: list[Recording] = field(default_factory=list)  # see :func:`plan_walkers`
 
     def recording(self, rec: Recording) -> Path:
         if rec.role == "lab":
@@ -172,6 +173,23 @@ def plan_study(cfg: DictConfig) -> tuple[list[Recording], list[Recording]]:
     return lab, study
 
 
+def plan_walkers(cfg: DictConfig, study: Sequence[Recording]) -> list[Recording]:
+    """The recordings of ``walkers.recordings`` again, with people walking through the undraped
+    view: same seed (room, camera placement, robot motion), ``<stem>_walkers``."""
+    spec = cfg.get("walkers") or {}
+    by_stem = {r.stem: r for r in study}
+    out = []
+    for stem in spec.get("recordings") or []:
+        if str(stem) not in by_stem:
+            raise SystemExit(f"walkers.recordings: {stem} is not an operating-room recording "
+                             f"(one of {', '.join(by_stem)})")
+        rec = by_stem[str(stem)]
+        out.append(Recording(f"{rec.stem}_walkers", rec.role, rec.split, rec.seed, rec.robots))
+    if out and int(spec.get("people", 0)) < 1:
+        raise SystemExit(f"walkers.people must be >= 1, got {spec.get('people')}")
+    return out
+
+
 def model_specs(cfg: DictConfig) -> list[ModelSpec]:
     """The trained models of ``cfg.recipe``."""
     recipe = str(cfg.recipe)
@@ -255,6 +273,27 @@ def measure_annotation(layout: Layout, subset: str, cfg: DictConfig) -> None:
         ]
         rows.append(row)
     _write_json(layout.out / "metrics" / "annotation.json", {"subset": subset, "rows": rows})
+
+
+def measure_walkers(layout: Layout, cfg: DictConfig) -> None:
+    """``metrics/walkers.json``: the undraped estimates of each recording with people walking
+    through the view beside those of the same recording without them (errors vs the truth)."""
+    from roboseg.reproduce_report import registration_error
+    from roboseg.robot import load_robot
+
+    robot = load_robot(None)
+    plain = {r.stem: r for r in layout.study}
+    rows = []
+    for rec in layout.walkers:
+        alone = plain[rec.stem.removesuffix("_walkers")]
+        for r, people in ((alone, 0), (rec, int(cfg.walkers.people))):
+            for name in robots_of(r):
+                pose = layout.undraped_pose(r, name)
+                row = {"recording": r.stem, "people_walking": people, "robot": name}
+                row.update(registration_error(pose, layout.recording(r), robot, "undraped")
+                           if pose.is_file() else {"error": "no pose written"})
+                rows.append(row)
+    _write_json(layout.out / "metrics" / "walkers.json", {"rows": rows})
 
 
 def measure_localisation(layout: Layout, cfg: DictConfig) -> None:
@@ -390,9 +429,13 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
     undraped_extra = [*([] if segmentor == "model" else [f"segmentor={segmentor}"]),
                       *cfg.undraped.overrides]
     site = cfg.operating_room.get("site")
+    at_site = [] if site is None else [f"site={int(site)}"]
     for rec in layout.study:
-        steps.append(simulate(rec, [] if site is None else [f"site={int(site)}"]))
-    for rec in layout.study:
+        steps.append(simulate(rec, at_site))
+    people = int((cfg.get("walkers") or {}).get("people", 0))
+    for rec in layout.walkers:
+        steps.append(simulate(rec, [*at_site, f"walkers={people}"]))
+    for rec in [*layout.study, *layout.walkers]:
         for robot in robots_of(rec):
             steps.append(Step(
                 f"register_undraped_{rec.stem}_{robot}",
@@ -415,6 +458,8 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
         steps.append(Step(f"dataset_{subset}", fn=lambda s=subset: merge_dataset(layout, s)))
     steps.append(Step("annotation_quality",
                       fn=lambda: measure_annotation(layout, subsets[0], cfg)))
+    if layout.walkers:
+        steps.append(Step("walkers_quality", fn=lambda: measure_walkers(layout, cfg)))
 
     # 3. the recipe's models: train, export, evaluate on the test recording
     init = model_init(cfg)
@@ -472,7 +517,8 @@ def run_reproduce(cfg: DictConfig) -> Path:
     t0 = time.perf_counter()
     out = Path(str(cfg.out)).resolve()
     lab, study = plan_study(cfg)
-    layout = Layout(out, Path(str(cfg.results)).resolve(), lab, study, model_specs(cfg))
+    layout = Layout(out, Path(str(cfg.results)).resolve(), lab, study, model_specs(cfg),
+                    plan_walkers(cfg, study))
     plan = build_plan(cfg, layout)
     stages = Stages(out, len(plan), str(cfg.runner))
     pending = [s.name for s in plan if not stages.marker(s.name).exists()]

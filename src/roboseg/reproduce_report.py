@@ -445,6 +445,29 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
                       "base error [mm]", "rotation [°]", "annotated frames",
                       "IoU vs simulator", "min IoU"], rows))
 
+    walk = read_json(out / "metrics" / "walkers.json")
+    if walk is not None:
+        add("\n### People walking through the view\n")
+        add(
+            f"The recordings {', '.join(f'`{r.stem}`' for r in layout.walkers)} again, with "
+            f"{cfg.walkers.people} people walking across the view during the undraped phase "
+            "(`roboseg-simulate walkers=N`: the same room, camera placement and robot motion), "
+            "their undraped phase registered as above; errors against the simulator's "
+            "`/tf_static` over every undraped frame.\n"
+        )
+        rows = [
+            [r["recording"], r["people_walking"], r["robot"], "–", "no pose written", "–", "–",
+             "–"] if "error" in r else
+            [r["recording"], r["people_walking"], r["robot"], _masks_of(r),
+             "yes" if r["converged"] else "**no**",
+             f"{fmt(r['tool_median_mm'], 1)} ({fmt(r['tool_q1_mm'], 1)}–"
+             f"{fmt(r['tool_q3_mm'], 1)})",
+             fmt(r["link_median_mm"][0], 1), fmt(r["rotation_deg"], 2)]
+            for r in walk["rows"]
+        ]
+        add(md_table(["recording", "people walking", "robot", "undraped masks", "converged",
+                      "tool error [mm]", "base error [mm]", "rotation [°]"], rows))
+
     # segmentation
     add("\n## Segmentation (Table S4 columns)\n")
     table = out / "eval" / "iou_table.md"
