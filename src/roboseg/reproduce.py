@@ -432,9 +432,8 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
     at_site = [] if site is None else [f"site={int(site)}"]
     for rec in layout.study:
         steps.append(simulate(rec, at_site))
-    people = int((cfg.get("walkers") or {}).get("people", 0))
-    for rec in layout.walkers:
-        steps.append(simulate(rec, [*at_site, f"walkers={people}"]))
+    for rec in layout.walkers:  # walkers.people checked by plan_walkers
+        steps.append(simulate(rec, [*at_site, f"walkers={int(cfg.walkers.people)}"]))
     for rec in [*layout.study, *layout.walkers]:
         for robot in robots_of(rec):
             steps.append(Step(

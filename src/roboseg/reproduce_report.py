@@ -292,6 +292,24 @@ def _masks_of(reg: dict[str, Any]) -> str:
     return text
 
 
+#: Columns of :func:`_estimate_cells`.
+ESTIMATE_COLUMNS = ["undraped masks", "converged", "tool error [mm]", "base error [mm]",
+                    "rotation [°]"]
+
+
+def _estimate_cells(reg: dict[str, Any]) -> list[str]:
+    """One undraped estimate's :data:`ESTIMATE_COLUMNS` (``reg``: :func:`registration_error`,
+    or ``{"error": ...}`` when no pose was written)."""
+    if "error" in reg:
+        return ["–", reg["error"], "–", "–", "–"]
+    return [
+        _masks_of(reg), "yes" if reg["converged"] else "**no**",
+        f"{fmt(reg['tool_median_mm'], 1)} ({fmt(reg['tool_q1_mm'], 1)}–"
+        f"{fmt(reg['tool_q3_mm'], 1)})",
+        fmt(reg["link_median_mm"][0], 1), fmt(reg["rotation_deg"], 2),
+    ]
+
+
 def at_a_glance(
     stage_status: Sequence[tuple[str, float | None, int | None]],
     bootstrap_val_iou: str,
@@ -432,17 +450,11 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
             a = row["annotation"]
             for reg in row["registration"]:
                 rows.append([
-                    row["recording"], row["split"], reg["robot"], _masks_of(reg),
-                    "yes" if reg["converged"] else "**no**",
-                    f"{fmt(reg['tool_median_mm'], 1)} ({fmt(reg['tool_q1_mm'], 1)}–"
-                    f"{fmt(reg['tool_q3_mm'], 1)})",
-                    fmt(reg["link_median_mm"][0], 1), fmt(reg["rotation_deg"], 2),
+                    row["recording"], row["split"], reg["robot"], *_estimate_cells(reg),
                     a["frames"], f"{fmt(a['iou_mean'], 3)} ± {fmt(a['iou_std'], 3)}",
                     fmt(a["iou_min"], 3),
                 ])
-        add(md_table(["recording", "split", "robot", "undraped masks", "converged",
-                      "tool error [mm]",
-                      "base error [mm]", "rotation [°]", "annotated frames",
+        add(md_table(["recording", "split", "robot", *ESTIMATE_COLUMNS, "annotated frames",
                       "IoU vs simulator", "min IoU"], rows))
 
     walk = read_json(out / "metrics" / "walkers.json")
@@ -455,18 +467,9 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
             "their undraped phase registered as above; errors against the simulator's "
             "`/tf_static` over every undraped frame.\n"
         )
-        rows = [
-            [r["recording"], r["people_walking"], r["robot"], "–", "no pose written", "–", "–",
-             "–"] if "error" in r else
-            [r["recording"], r["people_walking"], r["robot"], _masks_of(r),
-             "yes" if r["converged"] else "**no**",
-             f"{fmt(r['tool_median_mm'], 1)} ({fmt(r['tool_q1_mm'], 1)}–"
-             f"{fmt(r['tool_q3_mm'], 1)})",
-             fmt(r["link_median_mm"][0], 1), fmt(r["rotation_deg"], 2)]
-            for r in walk["rows"]
-        ]
-        add(md_table(["recording", "people walking", "robot", "undraped masks", "converged",
-                      "tool error [mm]", "base error [mm]", "rotation [°]"], rows))
+        rows = [[r["recording"], r["people_walking"], r["robot"], *_estimate_cells(r)]
+                for r in walk["rows"]]
+        add(md_table(["recording", "people walking", "robot", *ESTIMATE_COLUMNS], rows))
 
     # segmentation
     add("\n## Segmentation (Table S4 columns)\n")
