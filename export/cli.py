@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import sys
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import hydra
@@ -24,6 +25,7 @@ from export.onnx import convert_fp16, export_onnx, quantize_int8, verify_onnx
 from roboseg.cli._main import user_errors_exit
 from roboseg.config import CONF_DIR
 from roboseg.errors import RobosegError
+from roboseg.models import with_tta
 from roboseg.segmentor import OnnxSegmentor, _sigmoid
 
 log = logging.getLogger("roboseg.export")
@@ -92,16 +94,20 @@ def run(cfg: DictConfig) -> int:
         raise RobosegError(f"out: {out} is a folder")
     data_root = None if cfg.data.root is None else str(cfg.data.root)
     module, meta = load_for_export(str(cfg.ckpt), data_root)
-    export_onnx(module.net, meta, out, opset=int(cfg.opset))
+    tta = cfg.get("tta")
+    net = with_tta(module.net, None if tta is None else str(tta))  # ModelConfigError: one line
+    meta = replace(meta, tta="" if tta is None else str(tta))
+    export_onnx(net, meta, out, opset=int(cfg.opset))
     print(f"wrote {out} ({meta.encoder}, {meta.in_channels} channels, "
-          f"{meta.input_height}x{meta.input_width}, {meta.params_m:.1f} M parameters)")
+          f"{meta.input_height}x{meta.input_width}, {meta.params_m:.1f} M parameters"
+          f"{', test-time ' + meta.tta if meta.tta else ''})")
     batch = int(cfg.verify.batch)
     sizes = verify_sizes(
         None if cfg.verify.sizes is None else OmegaConf.to_container(cfg.verify.sizes),
         (meta.input_height, meta.input_width),
     )
     shapes = [(batch, meta.in_channels, h, w) for h, w in sizes]
-    check = verify_onnx(out, module.net, shapes, tolerance=float(cfg.verify.tolerance),
+    check = verify_onnx(out, net, shapes, tolerance=float(cfg.verify.tolerance),
                         seed=int(cfg.verify.seed))
     print("onnxruntime vs PyTorch:")
     print("\n".join(check.lines()))

@@ -87,6 +87,26 @@ def test_export_command(ckpt: Path, tmp_path: Path, capsys: pytest.CaptureFixtur
     assert not list(tmp_path.glob("*.part"))
 
 
+def test_export_with_flip_tta_averages_mirror_views_at_any_batch(
+        ckpt: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "tta.onnx"
+    assert run(export_cfg(ckpt=ckpt, out=out, tta="flip")) == 0
+    seg = OnnxSegmentor(out)
+    assert seg.meta.tta == "flip"
+    module, meta = load_for_export(ckpt)
+    for batch in (1, 3):  # the verification ran at batch 2
+        img = np.random.default_rng(batch).integers(0, 256, (batch, 64, 96, 3), dtype=np.uint8)
+        x = torch.from_numpy(preprocess(img, meta))
+        with torch.no_grad():
+            ref = 0.5 * (module.net(x) + module.net(x.flip(-1)).flip(-1))
+        np.testing.assert_allclose(seg.logits(x.numpy()), ref.numpy(), atol=1e-4)
+    with pytest.raises(SystemExit) as exc:
+        run(export_cfg(ckpt=ckpt, out=tmp_path / "bad.onnx", tta="rotate"))
+    assert exc.value.code == 1
+    assert "tta must be one of flip or null, got 'rotate'" in capsys.readouterr().err
+    assert not (tmp_path / "bad.onnx").exists()
+
+
 def test_export_fails_above_tolerance(ckpt: Path, tmp_path: Path,
                                       capsys: pytest.CaptureFixture) -> None:
     status = run(export_cfg(ckpt=ckpt, out=tmp_path / "m.onnx",

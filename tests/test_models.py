@@ -14,6 +14,7 @@ from roboseg.models import (
     available_models,
     build_unet,
     count_params,
+    with_tta,
 )
 
 
@@ -120,3 +121,18 @@ def test_bad_weight_files_are_clear_errors(tmp_path):
     torch.save({"x": object()}, hostile)
     with pytest.raises(ModelFileError, match="cannot be read safely"):
         build_unet("unet_resnet18", weights_path=hostile)
+
+
+def test_flip_averaged_is_the_mean_of_the_two_views_and_mirror_equivariant():
+    torch.manual_seed(0)
+    net = torch.nn.Conv2d(3, 1, (1, 3), padding=(0, 1))  # not mirror-symmetric by itself
+    tta = with_tta(net, "flip").eval()
+    x = torch.rand(3, 3, 8, 10)
+    with torch.no_grad():
+        expected = 0.5 * (net(x) + net(x.flip(-1)).flip(-1))
+        torch.testing.assert_close(tta(x), expected)
+        torch.testing.assert_close(tta(x.flip(-1)), tta(x).flip(-1))
+        assert not torch.allclose(net(x.flip(-1)), net(x).flip(-1))
+    assert with_tta(net, None) is net
+    with pytest.raises(ModelConfigError, match="tta must be one of flip or null, got 'scale'"):
+        with_tta(net, "scale")

@@ -66,6 +66,34 @@ for _encoder, _params in (
 register_preset("unet_regnety_004", UnetPreset("tu-regnety_004"))
 
 
+class FlipAveraged(nn.Module):
+    """Test-time augmentation: the mean of ``net``'s logits for each image and for its mirror
+    image (mirrored back). Training flips images horizontally, so both views are in
+    distribution; the cost is twice ``net``'s. (Two calls rather than one batch of ``2B``: a
+    traced split of the batch would fix the exported model's batch size.)"""
+
+    def __init__(self, net: nn.Module) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Logits ``[B, 1, H, W]`` of an input ``[B, C, H, W]``."""
+        return 0.5 * (self.net(x) + self.net(x.flip(-1)).flip(-1))
+
+
+#: Test-time augmentations ``roboseg-export tta=`` may bake into a model.
+TTA: dict[str, type[nn.Module]] = {"flip": FlipAveraged}
+
+
+def with_tta(net: nn.Module, tta: str | None) -> nn.Module:
+    """``net`` wrapped in the test-time augmentation ``tta`` (a key of :data:`TTA`; None: as is)."""
+    if tta is None or tta == "":
+        return net
+    if tta not in TTA:
+        raise ModelConfigError(f"tta must be one of {', '.join(TTA)} or null, got {tta!r}")
+    return TTA[tta](net)
+
+
 def available_models() -> list[str]:
     """Names accepted by :func:`build_unet`, sorted."""
     return sorted(PRESETS)

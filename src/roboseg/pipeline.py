@@ -69,7 +69,8 @@ def run_pipeline(cfg: DictConfig) -> Path:
     if not ckpt.exists() or best.stat().st_mtime > ckpt.stat().st_mtime:
         shutil.copy2(best, ckpt)
     onnx = out / "model.onnx"
-    stages.run("export", [script("roboseg-export"), f"ckpt={ckpt}", f"out={onnx}"])
+    stages.run("export", [script("roboseg-export"), f"ckpt={ckpt}", f"out={onnx}",
+                          *cfg.get("export", {}).get("overrides", [])])
     results = {}
     for name, spec in cfg.evaluate.runs.items():
         folder = out / str(name)

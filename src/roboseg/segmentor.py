@@ -54,6 +54,8 @@ class SegmentorMeta:
     params_m: float = 0.0
     cmm: bool | None = None
     dataset: str = ""
+    # test-time augmentation inside the graph ("flip": logits of image and mirror averaged)
+    tta: str = ""
 
     @classmethod
     def from_props(cls, props: Mapping[str, str], source: str = "model") -> SegmentorMeta:
@@ -80,6 +82,7 @@ class SegmentorMeta:
                 params_m=float(props.get("params_m", 0.0)),
                 cmm=None if props.get("cmm", "") == "" else props["cmm"] == "1",
                 dataset=str(props.get("dataset", "")),
+                tta=str(props.get("tta", "")),
             )
         except (ValueError, TypeError, json.JSONDecodeError) as exc:
             raise ModelFileError(f"{source}: malformed roboseg metadata ({exc})") from exc
@@ -105,6 +108,7 @@ class SegmentorMeta:
             "params_m": f"{self.params_m:.3f}",
             "cmm": "" if self.cmm is None else str(int(self.cmm)),
             "dataset": self.dataset,
+            "tta": self.tta,
         }
 
 
