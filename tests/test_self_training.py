@@ -19,11 +19,13 @@ from omegaconf import DictConfig
 from roboseg.config import CONF_DIR
 from roboseg.errors import ModelFileError
 from roboseg.recording import RecordingReader
+from roboseg.registration.grabcut import silhouette_trimap
 from roboseg.registration.self_training import (
     FramePairs,
     PredictedMasks,
     SelfTrainingConfig,
     SelfTrainingError,
+    grabcut_masks,
     kept_round,
     pose_change,
     predict_probabilities,
@@ -359,3 +361,65 @@ def test_one_round_end_to_end(recording: dict, tmp_path: Path, monkeypatch, caps
             after.append(_iou(masks.mask(i, cam, gt.shape), gt))
     # measured: 0.75 → 0.96
     assert np.mean(after) > np.mean(before) + 0.1, (np.mean(before), np.mean(after))
+
+
+# --------------------------------------------------------------------------------------------
+# GrabCut rounds
+
+
+def test_grabcut_masks_follow_the_image_not_the_silhouette() -> None:
+    """A light bar on a mottled darker background; the silhouette handed in is the bar shifted
+    3 px right and 1 px down (an estimate a few mm off): the cut lands on the bar."""
+    g = np.random.default_rng(0)
+    img = g.integers(40, 120, (90, 160, 3)).astype(np.uint8)
+    truth = np.zeros((90, 160), bool)
+    truth[30:42, 20:140] = True
+    truth[20:80, 70:82] = True
+    img[truth] = g.integers(200, 240, (int(truth.sum()), 3))
+    shifted = np.roll(np.roll(truth, 3, axis=1), 1, axis=0)
+    cfg = SelfTrainingConfig(masks="grabcut", grabcut_inner_px=2, grabcut_outer_px=8)
+    cut = grabcut_masks(img[None], shifted[None], cfg)[0]
+    # measured: 0.75 -> 0.975
+    assert _iou(shifted, truth) < 0.8 and _iou(cut, truth) > 0.95
+    assert not grabcut_masks(img[None], np.zeros((1, 90, 160), bool), cfg).any()
+    trimap = silhouette_trimap(shifted, 2, 8)
+    assert set(np.unique(trimap)) == {cv2.GC_BGD, cv2.GC_FGD, cv2.GC_PR_BGD, cv2.GC_PR_FGD}
+    assert (trimap[shifted] != cv2.GC_BGD).all() and (trimap[~shifted] != cv2.GC_FGD).all()
+    with pytest.raises(SelfTrainingError, match="self_training.masks must be model or grabcut"):
+        SelfTrainingConfig(masks="sam")
+
+
+def test_grabcut_rounds_end_to_end(recording: dict, tmp_path: Path, monkeypatch) -> None:
+    """Round 0 as in the test above; then GrabCut rounds (no network): every round is in
+    pose.yaml with its masks' settings, no checkpoint is written, the kept round is the one with
+    the highest residual IoU and its estimate stays near the truth. (Here, where the first
+    estimate is 3.7 mm off, the cut follows the small images' soft edges and the estimate
+    ends 8.1 mm off: GrabCut rounds help estimates far off, not ones this close.)"""
+    import roboseg.segmentor
+    from roboseg.cli.register import run
+
+    fake = DegradedGt(recording)
+    monkeypatch.setattr(roboseg.segmentor, "OnnxSegmentor", lambda *a, **k: fake)
+    out = tmp_path / "out"
+    pose_path = run(_cfg([
+        f"recording={recording['path']}", "model_file=fake.onnx", f"out={out}", "method=sdr",
+        "phase=undraped", "configs=4", "coarse_width=160", "cso.n_particles=256",
+        "cso.iterations=12", "cso.r_min=0.6", "cso.r_max=1.6", "cso.n_candidates=2",
+        "cso.restarts=0", "sdr.max_iterations=150", "self_training.rounds=2",
+        "self_training.masks=grabcut",
+    ]))
+    doc = yaml.safe_load(pose_path.read_text())
+    rounds = doc["self_training"]
+    assert [r["round"] for r in rounds] == [0, 1, 2]
+    for r in rounds[1:]:
+        assert r["masks"]["kind"] == "grabcut" and r["masks"]["frames"] == 16
+        assert (r["masks"]["inner_px"], r["masks"]["outer_px"]) == (2, 10)
+        assert 0.5 < r["masks"]["label_iou"] < 1.0  # the cut moved the outlines
+    kept = [r for r in rounds if r["kept"]]
+    assert len(kept) == 1 and np.allclose(kept[0]["T_cam_base"], doc["T_cam_base"], atol=1e-6)
+    assert not (out / "self_trained.ckpt").exists()
+    error_0, _ = pose_change(recording["T_true"], np.asarray(rounds[0]["T_cam_base"]))
+    error, _ = pose_change(recording["T_true"], np.asarray(doc["T_cam_base"]))
+    best = max(rounds, key=lambda r: r["mean_residual_iou"])
+    assert best["kept"]
+    assert error < 12.0, (error_0, error)  # measured: 3.7 -> 8.1 mm

@@ -26,7 +26,7 @@ import numpy as np
 from roboseg.errors import PromptError, SegmentationError
 from roboseg.registration.prompts import CameraPrompt
 
-__all__ = ["GrabCutConfig", "GrabCutTracker", "grabcut"]
+__all__ = ["GrabCutConfig", "GrabCutTracker", "grabcut", "silhouette_trimap"]
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +89,23 @@ def grabcut(image: np.ndarray, trimap: np.ndarray, iterations: int, margin: floa
     cv2.grabCut(crop, sub, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
     out = np.zeros((h, w), bool)
     out[y0:y1, x0:x1] = (sub == cv2.GC_FGD) | (sub == cv2.GC_PR_FGD)
+    return out
+
+
+def silhouette_trimap(silhouette: np.ndarray, inner_px: int, outer_px: int) -> np.ndarray:
+    """GrabCut labels ``[h, w]`` uint8 from a rendered robot silhouette ``[h, w]`` bool (e.g. at
+    a pose estimate a few millimetres off): robot for sure inside it eroded by ``inner_px``,
+    probably robot in the rest of it, probably background within ``outer_px`` outside it,
+    background for sure beyond. The cut then places the outline on the image's own edges within
+    that band."""
+    sil = np.asarray(silhouette, bool)
+    s8 = sil.astype(np.uint8)
+    sure = cv2.erode(s8, _disc(inner_px)).astype(bool) if inner_px > 0 else sil
+    near = cv2.dilate(s8, _disc(outer_px)).astype(bool) if outer_px > 0 else sil
+    out = np.full(sil.shape, cv2.GC_BGD, np.uint8)
+    out[near & ~sil] = cv2.GC_PR_BGD
+    out[sil] = cv2.GC_PR_FGD
+    out[sure] = cv2.GC_FGD
     return out
 
 

@@ -10,6 +10,13 @@ repeat until ``rounds`` are done or the mean residual IoU (estimate's silhouette
 masks, mean over views) gains less than ``min_gain``; the round with the highest mean residual
 IoU is kept. Each round's figures are the ``self_training`` list of ``pose.yaml``.
 
+With ``masks="grabcut"`` a round does not fine-tune a network: each image's silhouette at the
+estimate becomes a GrabCut trimap (robot for sure well inside it, background for sure well
+outside, probable in a band about its outline), and the cut, driven by the image's own colours
+and edges, gives the masks. A network fine-tuned on the estimate's silhouettes learns them back,
+misplaced outlines included; the cut cannot carry the estimate's outline over, it follows the
+image, so the estimate moves from round to round.
+
 The fine-tuned model learns only the registered robot (other robots and people are background
 in its labels) and sees zeros as the in-context prior of a 4-channel model.
 """
@@ -35,6 +42,7 @@ from torch.utils.data import DataLoader, Dataset
 from roboseg.annotate import MaskRenderer, thin_evenly
 from roboseg.errors import CameraError, ModelFileError, SegmentationError
 from roboseg.recording import RecordingReader, StereoFrame
+from roboseg.registration.grabcut import grabcut, silhouette_trimap
 from roboseg.registration.pose import rotation_angle
 from roboseg.registration.register import (
     Configuration,
@@ -61,11 +69,16 @@ __all__ = [
     "build_module",
     "fine_tune",
     "predict_probabilities",
+    "grabcut_masks",
     "refine_registration",
     "self_train",
 ]
 
 log = logging.getLogger(__name__)
+
+
+#: How a round turns the estimate's silhouettes into masks (``SelfTrainingConfig.masks``).
+MASK_SOURCES = ("model", "grabcut")
 
 
 class SelfTrainingError(SegmentationError, ValueError):
@@ -85,6 +98,10 @@ class SelfTrainingConfig:
     and input size are then used); ``augment``: an :class:`~roboseg.augment.AugmentationPipeline`
     Hydra config or None; ``max_frames``: stereo frames of the phase used, evenly strided;
     ``precision``: the Trainer's (``32-true``, ``bf16-mixed``); ``seed``: weights, sample order.
+    ``masks``: ``model`` (fine-tune a U-Net on the silhouettes) or ``grabcut`` (cut each image
+    from a trimap of its silhouette: robot for sure ``grabcut_inner_px`` inside the outline,
+    background for sure ``grabcut_outer_px`` outside it, at the images' own size;
+    ``grabcut_iterations`` GrabCut iterations); the training settings are then unused.
     """
 
     rounds: int = 0
@@ -101,6 +118,10 @@ class SelfTrainingConfig:
     max_frames: int = 200
     precision: str = "32-true"
     seed: int = 0
+    masks: str = "model"
+    grabcut_inner_px: int = 2
+    grabcut_outer_px: int = 10
+    grabcut_iterations: int = 3
 
     def __post_init__(self) -> None:
         def bad(name: str, rule: str, value: Any) -> SelfTrainingError:
@@ -108,6 +129,13 @@ class SelfTrainingConfig:
 
         if self.rounds < 0:
             raise bad("rounds", ">= 0 (0: off)", self.rounds)
+        if self.masks not in MASK_SOURCES:
+            raise bad("masks", " or ".join(MASK_SOURCES), self.masks)
+        if self.grabcut_inner_px < 0 or self.grabcut_outer_px < 1:
+            raise bad("grabcut_inner_px / grabcut_outer_px", ">= 0 / >= 1 px",
+                      (self.grabcut_inner_px, self.grabcut_outer_px))
+        if self.grabcut_iterations < 1:
+            raise bad("grabcut_iterations", ">= 1", self.grabcut_iterations)
         for name in ("steps", "batch_size", "max_frames"):
             if getattr(self, name) < 1:
                 raise bad(name, ">= 1", getattr(self, name))
@@ -360,6 +388,25 @@ def predict_probabilities(
     return torch.cat([p.float() for p in out])[:, 0].numpy()  # type: ignore[union-attr]
 
 
+def grabcut_masks(
+    images: np.ndarray, silhouettes: np.ndarray, cfg: SelfTrainingConfig
+) -> np.ndarray:
+    """Masks ``[N, H, W]`` bool of RGB ``images`` ``[N, H, W, 3]`` uint8, each cut by GrabCut
+    from the trimap of its silhouette (``[N, H, W]`` bool; :func:`silhouette_trimap`). An empty
+    silhouette, or one whose band leaves no background to learn from, is kept as it is."""
+    out = np.zeros(silhouettes.shape, bool)
+    for i, (img, sil) in enumerate(zip(images, silhouettes, strict=True)):
+        if not sil.any():
+            continue
+        trimap = silhouette_trimap(sil, cfg.grabcut_inner_px, cfg.grabcut_outer_px)
+        try:
+            cv2.setRNGSeed(cfg.seed)  # GrabCut's colour models start from k-means
+            out[i] = grabcut(img, trimap, cfg.grabcut_iterations, margin=0.05)
+        except SegmentationError:
+            out[i] = sil
+    return out
+
+
 class PredictedMasks:
     """A :data:`~roboseg.registration.register.MaskSource` of the fine-tuned model's masks:
     probabilities ``[N, 2, h, w]`` uint8 (0-255, at the model's input size) of the frames
@@ -591,14 +638,18 @@ def self_train(
     rows = thin_evenly(np.flatnonzero(wf.inside), cfg.max_frames)
     indices = [int(i) for i in wf.indices[rows]]
     joints = {int(i): wf.joints[r] for i, r in zip(indices, rows, strict=True)}
-    module = build_module(cfg)
-    size = tuple(int(s) for s in module.hparams.image_size)
-    images = np.zeros((len(indices), 2, *size, 3), np.uint8)
+    module = build_module(cfg) if cfg.masks == "model" else None
+    images = None
     with wf.reader(robot_model) as reader:
         for n, i in enumerate(indices):
             frame = _read(reader, i)
+            if images is None:  # the model's input size, or the left image's own
+                size = (tuple(int(s) for s in module.hparams.image_size) if module is not None
+                        else tuple(int(s) for s in frame.left.shape[:2]))
+                images = np.zeros((len(indices), 2, *size, 3), np.uint8)
             images[n, 0] = _resize_image(frame.left, size)  # type: ignore[arg-type]
             images[n, 1] = _resize_image(frame.right, size)  # type: ignore[arg-type]
+    assert images is not None
     flat = images.reshape(-1, *size, 3)
     q = np.stack([joints[i] for i in indices])
     read_s = time.perf_counter() - t0
@@ -613,26 +664,42 @@ def self_train(
         t1 = time.perf_counter()
         labels = render_labels(robot_model, first.robot, first.views, prev.T_cam_base, q, size)
         t2 = time.perf_counter()
-        trainer, loss = fine_tune(module, flat, labels.reshape(-1, *size), cfg)
-        t3 = time.perf_counter()
-        probs = predict_probabilities(module, flat, cfg, trainer)
-        masks = PredictedMasks(
-            indices,
-            np.round(255 * probs).astype(np.uint8).reshape(len(indices), 2, *size),
-            float(module.hparams.threshold),
-        )
+        if module is None:  # GrabCut from each silhouette
+            cut = grabcut_masks(flat, labels.reshape(-1, *size), cfg)
+            t3 = time.perf_counter()
+            probs = cut.astype(np.float32)
+            masks = PredictedMasks(
+                indices, (255 * cut).astype(np.uint8).reshape(len(indices), 2, *size), 0.5
+            )
+            label_iou = _pooled(cut.reshape(labels.shape), labels)
+            how = {
+                "kind": "grabcut",
+                "frames": len(indices),
+                "inner_px": cfg.grabcut_inner_px,
+                "outer_px": cfg.grabcut_outer_px,
+                "label_iou": round(label_iou, 4),
+            }
+        else:
+            trainer, loss = fine_tune(module, flat, labels.reshape(-1, *size), cfg)
+            t3 = time.perf_counter()
+            probs = predict_probabilities(module, flat, cfg, trainer)
+            masks = PredictedMasks(
+                indices,
+                np.round(255 * probs).astype(np.uint8).reshape(len(indices), 2, *size),
+                float(module.hparams.threshold),
+            )
+            label_iou = _pooled(probs.reshape(labels.shape) > masks.threshold, labels)
+            start = "init_ckpt" if cfg.init_ckpt else "scratch"
+            how = {
+                "kind": "self_trained",
+                "model": str(module.hparams.model["name"]),
+                "from": start if k == 1 else f"round {k - 1}",
+                "frames": len(indices),
+                "steps": cfg.steps,
+                "train_loss": round(loss, 4),
+                "label_iou": round(label_iou, 4),
+            }
         t4 = time.perf_counter()
-        label_iou = _pooled(probs.reshape(labels.shape) > masks.threshold, labels)
-        start = "init_ckpt" if cfg.init_ckpt else "scratch"
-        how = {
-            "kind": "self_trained",
-            "model": str(module.hparams.model["name"]),
-            "from": start if k == 1 else f"round {k - 1}",
-            "frames": len(indices),
-            "steps": cfg.steps,
-            "train_loss": round(loss, 4),
-            "label_iou": round(label_iou, 4),
-        }
         try:
             reg = refine_registration(path, robot_model, prev, masks, joints, reg_cfg)
         except CameraError as exc:  # e.g. the fine-tuned masks are empty everywhere
@@ -650,15 +717,16 @@ def self_train(
         }
         regs.append(reg)
         entries.append(entry)
-        states.append({n: t.detach().clone() for n, t in module.state_dict().items()})
+        states.append(None if module is None
+                      else {n: t.detach().clone() for n, t in module.state_dict().items()})
         predicted.append(masks)
         history.append(_mean_iou(reg))
         change = entry["pose_change"]
         log.info(
-            "self-training round %d: masks from the model fine-tuned for %d steps (label IoU "
+            "self-training round %d: masks from %s (IoU with the estimate's silhouettes "
             "%.3f), mean residual IoU %.4f (%+.4f), pose change %.1f mm %.2f deg",
             k,
-            cfg.steps,
+            "GrabCut" if module is None else f"the model fine-tuned for {cfg.steps} steps",
             label_iou,
             history[-1],
             history[-1] - history[-2],
@@ -673,8 +741,9 @@ def self_train(
     kept = regs[best]
     log.info("self-training stopped (%s); keeping round %d", stop, best)
     kept.seconds = {**first.seconds, "self_training": round(time.perf_counter() - t0, 2)}
-    if best == 0:
-        return SelfTrainingResult(kept, entries, best, indices)
+    if best == 0 or module is None:
+        return SelfTrainingResult(kept, entries, best, indices,
+                                  None if best == 0 else predicted[best])
     return SelfTrainingResult(
         kept, entries, best, indices, predicted[best], module, trainer, states[best]
     )
