@@ -415,6 +415,7 @@ def test_grabcut_rounds_end_to_end(recording: dict, tmp_path: Path, monkeypatch)
         assert r["masks"]["kind"] == "grabcut" and r["masks"]["frames"] == 16
         assert (r["masks"]["inner_px"], r["masks"]["outer_px"]) == (2, 10)
         assert 0.5 < r["masks"]["label_iou"] < 1.0  # the cut moved the outlines
+        assert set(r["seconds"]) == {"labels", "grabcut", "register"}
     kept = [r for r in rounds if r["kept"]]
     assert len(kept) == 1 and np.allclose(kept[0]["T_cam_base"], doc["T_cam_base"], atol=1e-6)
     assert not (out / "self_trained.ckpt").exists()

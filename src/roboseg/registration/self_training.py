@@ -667,7 +667,6 @@ def self_train(
         if module is None:  # GrabCut from each silhouette
             cut = grabcut_masks(flat, labels.reshape(-1, *size), cfg)
             t3 = time.perf_counter()
-            probs = cut.astype(np.float32)
             masks = PredictedMasks(
                 indices, (255 * cut).astype(np.uint8).reshape(len(indices), 2, *size), 0.5
             )
@@ -709,10 +708,13 @@ def self_train(
             break
         t5 = time.perf_counter()
         entry = _entry(k, reg, how, prev)
+        masks_s = (
+            {"grabcut": round(t4 - t2, 2)} if module is None
+            else {"train": round(t3 - t2, 2), "predict": round(t4 - t3, 2)}
+        )
         entry["seconds"] = {
             "labels": round(t2 - t1 + (read_s if k == 1 else 0.0), 2),
-            "train": round(t3 - t2, 2),
-            "predict": round(t4 - t3, 2),
+            **masks_s,
             "register": round(t5 - t4, 2),
         }
         regs.append(reg)
