@@ -340,6 +340,11 @@ def run(cfg: DictConfig) -> Path:
         reg = register(recording, robot, segmentor=segmentor, config=reg_cfg)
         model = str(Path(str(cfg.model_file)).resolve())
         described: dict[str, Any] = {"kind": "model"}
+
+        def first_masks(frame: Any) -> tuple[np.ndarray, np.ndarray]:
+            probs = segmentor.predict(np.stack([frame.left, frame.right]))
+            pair = probs > segmentor.meta.threshold  # as register() thresholds them
+            return pair[0], pair[1]
     else:
         seg = segmentor_from_cfg(cfg)
         if reg_cfg.method == "sdr_prior":
@@ -356,13 +361,14 @@ def run(cfg: DictConfig) -> Path:
         if note:
             reg.warnings.insert(0, note)
         model, described = None, seg.describe()
+        first_masks = seg
     out = Path(str(cfg.out))
     rounds = None
     if self_training is not None:
         from roboseg.registration.self_training import self_train
 
         st_cfg, save_model = self_training
-        trained = self_train(recording, robot, reg, reg_cfg, st_cfg, described)
+        trained = self_train(recording, robot, reg, reg_cfg, st_cfg, described, first_masks)
         reg, rounds = trained.registration, trained.rounds
         if note and note not in reg.warnings:
             reg.warnings.insert(0, note)

@@ -92,12 +92,15 @@ def grabcut(image: np.ndarray, trimap: np.ndarray, iterations: int, margin: floa
     return out
 
 
-def silhouette_trimap(silhouette: np.ndarray, inner_px: int, outer_px: int) -> np.ndarray:
+def silhouette_trimap(
+    silhouette: np.ndarray, inner_px: int, outer_px: int, background: np.ndarray | None = None
+) -> np.ndarray:
     """GrabCut labels ``[h, w]`` uint8 from a rendered robot silhouette ``[h, w]`` bool (e.g. at
     a pose estimate a few millimetres off): robot for sure inside it eroded by ``inner_px``,
     probably robot in the rest of it, probably background within ``outer_px`` outside it,
-    background for sure beyond. The cut then places the outline on the image's own edges within
-    that band."""
+    background for sure beyond, and wherever ``background`` (``[h, w]`` bool, optional) holds
+    outside the silhouette. The cut then places the outline on the image's own edges within that
+    band."""
     sil = np.asarray(silhouette, bool)
     s8 = sil.astype(np.uint8)
     sure = cv2.erode(s8, _disc(inner_px)).astype(bool) if inner_px > 0 else sil
@@ -106,6 +109,8 @@ def silhouette_trimap(silhouette: np.ndarray, inner_px: int, outer_px: int) -> n
     out[near & ~sil] = cv2.GC_PR_BGD
     out[sil] = cv2.GC_PR_FGD
     out[sure] = cv2.GC_FGD
+    if background is not None:
+        out[np.asarray(background, bool) & ~sil] = cv2.GC_BGD
     return out
 
 

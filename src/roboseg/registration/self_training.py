@@ -28,7 +28,7 @@ import logging
 import math
 import time
 import warnings
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -101,7 +101,9 @@ class SelfTrainingConfig:
     ``masks``: ``model`` (fine-tune a U-Net on the silhouettes) or ``grabcut`` (cut each image
     from a trimap of its silhouette: robot for sure ``grabcut_inner_px`` inside the outline,
     background for sure ``grabcut_outer_px`` outside it, at the images' own size;
-    ``grabcut_iterations`` GrabCut iterations); the training settings are then unused.
+    ``grabcut_iterations`` GrabCut iterations; ``grabcut_keep_out``: pixels outside the
+    silhouette that round 0's masks call background are background for sure); the training
+    settings are then unused.
     """
 
     rounds: int = 0
@@ -122,6 +124,7 @@ class SelfTrainingConfig:
     grabcut_inner_px: int = 2
     grabcut_outer_px: int = 10
     grabcut_iterations: int = 3
+    grabcut_keep_out: bool = True
 
     def __post_init__(self) -> None:
         def bad(name: str, rule: str, value: Any) -> SelfTrainingError:
@@ -389,16 +392,21 @@ def predict_probabilities(
 
 
 def grabcut_masks(
-    images: np.ndarray, silhouettes: np.ndarray, cfg: SelfTrainingConfig
+    images: np.ndarray,
+    silhouettes: np.ndarray,
+    cfg: SelfTrainingConfig,
+    background: np.ndarray | None = None,
 ) -> np.ndarray:
     """Masks ``[N, H, W]`` bool of RGB ``images`` ``[N, H, W, 3]`` uint8, each cut by GrabCut
-    from the trimap of its silhouette (``[N, H, W]`` bool; :func:`silhouette_trimap`). An empty
-    silhouette, or one whose band leaves no background to learn from, is kept as it is."""
+    from the trimap of its silhouette (``[N, H, W]`` bool; :func:`silhouette_trimap`, with
+    ``background`` ``[N, H, W]`` bool as sure background outside it). An empty silhouette, or
+    one whose band leaves no background to learn from, is kept as it is."""
     out = np.zeros(silhouettes.shape, bool)
     for i, (img, sil) in enumerate(zip(images, silhouettes, strict=True)):
         if not sil.any():
             continue
-        trimap = silhouette_trimap(sil, cfg.grabcut_inner_px, cfg.grabcut_outer_px)
+        trimap = silhouette_trimap(sil, cfg.grabcut_inner_px, cfg.grabcut_outer_px,
+                                   None if background is None else background[i])
         try:
             cv2.setRNGSeed(cfg.seed)  # GrabCut's colour models start from k-means
             out[i] = grabcut(img, trimap, cfg.grabcut_iterations, margin=0.05)
@@ -609,11 +617,13 @@ def self_train(
     reg_cfg: RegisterConfig,
     cfg: SelfTrainingConfig,
     source: dict[str, Any] | None = None,
+    first_masks: Callable[[StereoFrame], tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> SelfTrainingResult:
     """Self-train from ``first`` (the registration of ``reg_cfg``'s phase whose masks came from
     ``source``, e.g. ``{"kind": "motion"}``) for up to ``cfg.rounds`` rounds; see the module
-    docstring. A first registration that did not converge is not trained on (its labels would
-    teach the wrong silhouette): it is returned as it is, with a warning."""
+    docstring. ``first_masks`` (frame → left, right masks) is round 0's segmentor, used by
+    ``grabcut_keep_out``. A first registration that did not converge is not trained on (its
+    labels would teach the wrong silhouette): it is returned as it is, with a warning."""
     path = Path(recording)
     src = dict(source or {"kind": "model"})
     history = [_mean_iou(first)]
@@ -639,7 +649,10 @@ def self_train(
     indices = [int(i) for i in wf.indices[rows]]
     joints = {int(i): wf.joints[r] for i, r in zip(indices, rows, strict=True)}
     module = build_module(cfg) if cfg.masks == "model" else None
-    images = None
+    keep_out = module is None and cfg.grabcut_keep_out
+    if keep_out and first_masks is None:
+        raise SelfTrainingError("self_training.grabcut_keep_out needs round 0's segmentor")
+    images = background = None
     with wf.reader(robot_model) as reader:
         for n, i in enumerate(indices):
             frame = _read(reader, i)
@@ -647,8 +660,14 @@ def self_train(
                 size = (tuple(int(s) for s in module.hparams.image_size) if module is not None
                         else tuple(int(s) for s in frame.left.shape[:2]))
                 images = np.zeros((len(indices), 2, *size, 3), np.uint8)
+                background = np.zeros((len(indices), 2, *size), bool) if keep_out else None
             images[n, 0] = _resize_image(frame.left, size)  # type: ignore[arg-type]
             images[n, 1] = _resize_image(frame.right, size)  # type: ignore[arg-type]
+            if background is not None and first_masks is not None:
+                for c, m in enumerate(first_masks(frame)):
+                    m8 = np.asarray(m, np.uint8)
+                    m8 = cv2.resize(m8, (size[1], size[0]), interpolation=cv2.INTER_NEAREST)
+                    background[n, c] = m8 == 0
     assert images is not None
     flat = images.reshape(-1, *size, 3)
     q = np.stack([joints[i] for i in indices])
@@ -665,7 +684,8 @@ def self_train(
         labels = render_labels(robot_model, first.robot, first.views, prev.T_cam_base, q, size)
         t2 = time.perf_counter()
         if module is None:  # GrabCut from each silhouette
-            cut = grabcut_masks(flat, labels.reshape(-1, *size), cfg)
+            cut = grabcut_masks(flat, labels.reshape(-1, *size), cfg,
+                                None if background is None else background.reshape(-1, *size))
             t3 = time.perf_counter()
             masks = PredictedMasks(
                 indices, (255 * cut).astype(np.uint8).reshape(len(indices), 2, *size), 0.5
@@ -676,6 +696,7 @@ def self_train(
                 "frames": len(indices),
                 "inner_px": cfg.grabcut_inner_px,
                 "outer_px": cfg.grabcut_outer_px,
+                "keep_out": bool(keep_out),
                 "label_iou": round(label_iou, 4),
             }
         else:
