@@ -94,9 +94,9 @@ def run(cfg: DictConfig) -> int:
         raise RobosegError(f"out: {out} is a folder")
     data_root = None if cfg.data.root is None else str(cfg.data.root)
     module, meta = load_for_export(str(cfg.ckpt), data_root)
-    tta = cfg.get("tta")
-    net = with_tta(module.net, None if tta is None else str(tta))  # ModelConfigError: one line
-    meta = replace(meta, tta="" if tta is None else str(tta))
+    tta = str(cfg.get("tta") or "")
+    net = with_tta(module.net, tta)  # ModelConfigError: one line
+    meta = replace(meta, tta=tta)
     export_onnx(net, meta, out, opset=int(cfg.opset))
     print(f"wrote {out} ({meta.encoder}, {meta.in_channels} channels, "
           f"{meta.input_height}x{meta.input_width}, {meta.params_m:.1f} M parameters"

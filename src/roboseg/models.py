@@ -86,8 +86,9 @@ TTA: dict[str, type[nn.Module]] = {"flip": FlipAveraged}
 
 
 def with_tta(net: nn.Module, tta: str | None) -> nn.Module:
-    """``net`` wrapped in the test-time augmentation ``tta`` (a key of :data:`TTA`; None: as is)."""
-    if tta is None or tta == "":
+    """``net`` wrapped in the test-time augmentation ``tta`` (a key of :data:`TTA`; None or "":
+    as is)."""
+    if not tta:
         return net
     if tta not in TTA:
         raise ModelConfigError(f"tta must be one of {', '.join(TTA)} or null, got {tta!r}")

@@ -652,23 +652,21 @@ def self_train(
     keep_out = module is None and cfg.grabcut_keep_out
     if keep_out and first_masks is None:
         raise SelfTrainingError("self_training.grabcut_keep_out needs round 0's segmentor")
-    images = background = None
+    # the model's input size, or the left images' own (those round 0 registered on)
+    size = (tuple(int(s) for s in module.hparams.image_size) if module is not None
+            else tuple(int(s) for s in first.images[0].shape[1:3]))
+    images = np.zeros((len(indices), 2, *size, 3), np.uint8)
+    background = np.zeros((len(indices), 2, *size), bool) if keep_out else None
     with wf.reader(robot_model) as reader:
         for n, i in enumerate(indices):
             frame = _read(reader, i)
-            if images is None:  # the model's input size, or the left image's own
-                size = (tuple(int(s) for s in module.hparams.image_size) if module is not None
-                        else tuple(int(s) for s in frame.left.shape[:2]))
-                images = np.zeros((len(indices), 2, *size, 3), np.uint8)
-                background = np.zeros((len(indices), 2, *size), bool) if keep_out else None
             images[n, 0] = _resize_image(frame.left, size)  # type: ignore[arg-type]
             images[n, 1] = _resize_image(frame.right, size)  # type: ignore[arg-type]
-            if background is not None and first_masks is not None:
-                for c, m in enumerate(first_masks(frame)):
-                    m8 = np.asarray(m, np.uint8)
-                    m8 = cv2.resize(m8, (size[1], size[0]), interpolation=cv2.INTER_NEAREST)
+            if background is not None:  # keep_out: first_masks is set
+                for c, m in enumerate(first_masks(frame)):  # type: ignore[misc]
+                    m8 = cv2.resize(np.asarray(m, np.uint8), (size[1], size[0]),
+                                    interpolation=cv2.INTER_NEAREST)
                     background[n, c] = m8 == 0
-    assert images is not None
     flat = images.reshape(-1, *size, 3)
     q = np.stack([joints[i] for i in indices])
     read_s = time.perf_counter() - t0
