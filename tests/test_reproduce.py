@@ -191,9 +191,11 @@ def test_at_a_glance_counts_failures_convergence_and_annotation_quality() -> Non
     stages = [("simulate", 60.0, 0), ("register_a", 90.0, 1), ("register_b", 30.0, 0),
               ("bench", None, None)]
     annotation = {"rows": [
-        {"annotation": {"iou_mean": 0.9}, "registration": [{"converged": True}]},
+        {"annotation": {"iou_mean": 0.9},
+         "registration": [{"converged": True, "tool_median_mm": 4.0}]},
         {"annotation": {"iou_mean": 0.5},
-         "registration": [{"converged": False}, {"converged": True}]},
+         "registration": [{"converged": False, "tool_median_mm": 2.0},
+                          {"converged": True, "tool_median_mm": 10.5}]},
     ]}
     localisation = {"rows": [{"converged": True, "tool_median_mm": 12.5},
                              {"converged": False, "tool_median_mm": 3.0}]}
@@ -201,10 +203,11 @@ def test_at_a_glance_counts_failures_convergence_and_annotation_quality() -> Non
     assert lines[0] == ("- stages: 2 of 4 ok, 1 failed (register_a), 1 not run; "
                         "3.0 min of stage time in all")
     assert lines[1].endswith("validation IoU 0.812")
-    assert lines[2] == ("- undraped registrations converged: 2 of 3; self-annotated masks vs "
-                        "simulator: mean IoU 0.700 over 2 recordings")
-    assert lines[3] == ("- draped test registrations converged: 1 of 2; median tool-centre "
-                        "error 3.0–12.5 mm")
+    # within 10 mm counts converged estimates only (the 2.0 mm one did not converge)
+    assert lines[2] == ("- undraped registrations converged: 2 of 3, 1 within 10 mm; "
+                        "self-annotated masks vs simulator: mean IoU 0.700 over 2 recordings")
+    assert lines[3] == ("- draped test registrations converged: 1 of 2, 0 within 10 mm; median "
+                        "tool-centre error 3.0–12.5 mm")
     assert len(at_a_glance(stages[:1], "-", None, None)) == 2
     timed = at_a_glance(stages, "-", None, None, wall_seconds=150.0)
     assert timed[0].endswith("; 2.5 min wall clock; 3.0 min of stage time in all")
@@ -315,3 +318,13 @@ def test_undraped_segmentor_chooses_the_bootstrap_or_none(
     cfg.undraped.segmentor = "prompt"
     with pytest.raises(SystemExit, match="undraped.segmentor=prompt: not one of model, motion"):
         build_plan(cfg, layout)
+
+
+def test_masks_of_names_the_kind_of_self_training_rounds() -> None:
+    from roboseg.reproduce_report import _masks_of
+
+    reg = {"segmentor": "model", "self_training_rounds": 3, "self_training_kept": 2}
+    assert _masks_of({**reg, "self_training_masks": "grabcut"}) == "model + GrabCut 3, kept 2"
+    assert _masks_of({**reg, "self_training_masks": "self_trained"}) == (
+        "model + self-training 3, kept 2")
+    assert _masks_of({"segmentor": "motion", "self_training_rounds": 0}) == "motion"

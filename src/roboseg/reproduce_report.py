@@ -124,6 +124,9 @@ def registration_error(
         # self-training: rounds run after the first registration, the round kept (0: the first)
         "self_training_rounds": max(0, len(rounds) - 1),
         "self_training_kept": kept[0] if kept else None,
+        # what made the rounds' masks: grabcut | self_trained (a fine-tuned network)
+        "self_training_masks": (rounds[1].get("masks") or {}).get("kind") if len(rounds) > 1
+        else None,
         "converged": bool(doc.get("converged", False)),
         "residual_iou": doc.get("residual_iou"),
         "frames": int(len(q)),
@@ -285,10 +288,12 @@ def _status(stages: Any, name: str) -> str:
 
 
 def _masks_of(reg: dict[str, Any]) -> str:
-    """Where an undraped registration's masks came from: ``motion + self-training 1, kept 1``."""
+    """Where an undraped registration's masks came from: ``motion + self-training 1, kept 1``
+    (rounds of a fine-tuned network) or ``model + GrabCut 3, kept 2``."""
     text = str(reg.get("segmentor") or "model")
     if reg.get("self_training_rounds"):
-        text += f" + self-training {reg['self_training_rounds']}, kept {reg['self_training_kept']}"
+        how = "GrabCut" if reg.get("self_training_masks") == "grabcut" else "self-training"
+        text += f" + {how} {reg['self_training_rounds']}, kept {reg['self_training_kept']}"
     return text
 
 
@@ -308,6 +313,20 @@ def _estimate_cells(reg: dict[str, Any]) -> list[str]:
         f"{fmt(reg['tool_q3_mm'], 1)})",
         fmt(reg["link_median_mm"][0], 1), fmt(reg["rotation_deg"], 2),
     ]
+
+
+#: The tool-centre error (median over the phase's frames, mm) the study aims within.
+TARGET_TOOL_MM = 10.0
+
+
+def _within(rows: Sequence[Mapping[str, Any]]) -> str:
+    """``, k within 10 mm``: converged estimates whose median tool-centre error is within
+    :data:`TARGET_TOOL_MM` (empty when no row has an error)."""
+    tool = [r for r in rows if r.get("tool_median_mm") is not None]
+    if not tool:
+        return ""
+    k = sum(bool(r.get("converged")) and r["tool_median_mm"] <= TARGET_TOOL_MM for r in tool)
+    return f", {k} within {TARGET_TOOL_MM:g} mm"
 
 
 def at_a_glance(
@@ -341,17 +360,17 @@ def at_a_glance(
         ious = [row["annotation"]["iou_mean"] for row in annotation["rows"]
                 if row["annotation"].get("iou_mean") is not None]
         ok = sum(bool(r.get("converged")) for r in regs)
+        head = f"- undraped registrations converged: {ok} of {len(regs)}{_within(regs)}"
         lines.append(
-            f"- undraped registrations converged: {ok} of {len(regs)}; self-annotated masks "
-            f"vs simulator: mean IoU {np.mean(ious):.3f} over {len(ious)} recordings"
-            if ious else f"- undraped registrations converged: {ok} of {len(regs)}"
+            f"{head}; self-annotated masks vs simulator: mean IoU {np.mean(ious):.3f} over "
+            f"{len(ious)} recordings" if ious else head
         )
     if localisation is not None:
         rows = localisation["rows"]
         ok = sum(bool(r.get("converged")) for r in rows)
         tool = [r["tool_median_mm"] for r in rows if r.get("tool_median_mm") is not None]
         lines.append(
-            f"- draped test registrations converged: {ok} of {len(rows)}"
+            f"- draped test registrations converged: {ok} of {len(rows)}{_within(rows)}"
             + (f"; median tool-centre error {min(tool):.1f}–{max(tool):.1f} mm" if tool else "")
         )
     return lines
@@ -437,7 +456,9 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
             "The undraped phase of each operating-room recording is registered with the camera "
             f"swarm + SDR on the masks of `undraped.segmentor={segmentor}` (column *undraped "
             "masks*; *+ self-training N, kept k*: N rounds of fine-tuning a segmenter on the "
-            "recording's own frames labelled by the estimate, round k's estimate kept, 0 being "
+            "recording's own frames labelled by the estimate, then registering again; *+ GrabCut "
+            "N, kept k*: N rounds of cutting each frame by GrabCut from the estimate's "
+            "silhouette, then registering again; round k's estimate kept, 0 being "
             "the first registration); the "
             f"{cfg.annotate.phase} phase is then annotated with that estimate "
             "(`roboseg-annotate calibration=…`). Columns: the estimate's error against the "
