@@ -18,6 +18,7 @@ Images are segmented ``work_width`` pixels wide; prompts and masks are scaled ac
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -26,7 +27,14 @@ import numpy as np
 from roboseg.errors import PromptError, SegmentationError
 from roboseg.registration.prompts import CameraPrompt
 
-__all__ = ["GrabCutConfig", "GrabCutTracker", "grabcut", "silhouette_trimap"]
+__all__ = [
+    "GrabCutConfig",
+    "GrabCutTracker",
+    "grabcut",
+    "grabcut_deferring",
+    "gmm_log_likelihood",
+    "silhouette_trimap",
+]
 
 log = logging.getLogger(__name__)
 
@@ -67,16 +75,16 @@ def _disc(radius: int) -> np.ndarray:
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
 
 
-def grabcut(image: np.ndarray, trimap: np.ndarray, iterations: int, margin: float) -> np.ndarray:
-    """GrabCut of RGB uint8 ``image`` ``[h, w, 3]`` from ``trimap`` ``[h, w]`` uint8 of
-    ``cv2.GC_*`` labels, on the crop about the labels other than ``GC_BGD`` (grown by
-    ``margin`` × its size per side): robot mask ``[h, w]`` bool (empty without any robot
-    label). Raises :class:`SegmentationError` when the crop holds no background to learn from.
-    """
+def _cut(
+    image: np.ndarray, trimap: np.ndarray, iterations: int, margin: float
+) -> tuple[np.ndarray, tuple[int, int, int, int], np.ndarray, np.ndarray, np.ndarray] | None:
+    """GrabCut on the crop about ``trimap``'s labels other than ``GC_BGD``: ``(robot mask of the
+    crop, (y0, y1, x0, x1), the crop BGR, background GMM, robot GMM)``; None without any robot
+    label."""
     h, w = trimap.shape
-    active = trimap != cv2.GC_BGD
     if not np.isin(trimap, (cv2.GC_FGD, cv2.GC_PR_FGD)).any():
-        return np.zeros((h, w), bool)
+        return None
+    active = trimap != cv2.GC_BGD
     rows, cols = np.flatnonzero(active.any(1)), np.flatnonzero(active.any(0))
     y0, y1, x0, x1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
     gy, gx = round(margin * (y1 - y0)) + 2, round(margin * (x1 - x0)) + 2
@@ -87,8 +95,79 @@ def grabcut(image: np.ndarray, trimap: np.ndarray, iterations: int, margin: floa
     bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
     crop = np.ascontiguousarray(cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_RGB2BGR))
     cv2.grabCut(crop, sub, None, bgd, fgd, iterations, cv2.GC_INIT_WITH_MASK)
-    out = np.zeros((h, w), bool)
-    out[y0:y1, x0:x1] = (sub == cv2.GC_FGD) | (sub == cv2.GC_PR_FGD)
+    return (sub == cv2.GC_FGD) | (sub == cv2.GC_PR_FGD), (y0, y1, x0, x1), crop, bgd, fgd
+
+
+def grabcut(image: np.ndarray, trimap: np.ndarray, iterations: int, margin: float) -> np.ndarray:
+    """GrabCut of RGB uint8 ``image`` ``[h, w, 3]`` from ``trimap`` ``[h, w]`` uint8 of
+    ``cv2.GC_*`` labels, on the crop about the labels other than ``GC_BGD`` (grown by
+    ``margin`` × its size per side): robot mask ``[h, w]`` bool (empty without any robot
+    label). Raises :class:`SegmentationError` when the crop holds no background to learn from.
+    """
+    out = np.zeros(trimap.shape, bool)
+    cut = _cut(image, trimap, iterations, margin)
+    if cut is not None:
+        mask, (y0, y1, x0, x1), *_ = cut
+        out[y0:y1, x0:x1] = mask
+    return out
+
+
+def gmm_log_likelihood(model: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """Log-density ``[M]`` of colours ``pixels`` ``[M, 3]`` (BGR, 0-255) under a GrabCut colour
+    model ``[1, 65]`` as ``cv2.grabCut`` fills it: 5 weights, then 5 means [3], then 5
+    covariances [3, 3]. Empty components (weight 0) are skipped."""
+    m = np.asarray(model, np.float64).ravel()
+    k = 5
+    weights, means, covs = m[:k], m[k : 4 * k].reshape(k, 3), m[4 * k :].reshape(k, 3, 3)
+    x = np.asarray(pixels, np.float64)
+    out = np.full(len(x), -np.inf)
+    for w, mu, cov in zip(weights, means, covs, strict=True):
+        if w <= 0:
+            continue
+        c = cov + 1e-6 * np.eye(3)  # OpenCV adds the same to singular covariances
+        d = x - mu
+        maha = np.einsum("ni,ij,nj->n", d, np.linalg.inv(c), d)
+        out = np.logaddexp(
+            out, math.log(w) - 0.5 * (maha + math.log(np.linalg.det(c)) + 3 * math.log(2 * math.pi))
+        )
+    return out
+
+
+def grabcut_deferring(
+    image: np.ndarray,
+    trimap: np.ndarray,
+    reference: np.ndarray,
+    iterations: int,
+    margin: float,
+    defer_nats: float,
+) -> np.ndarray:
+    """GrabCut as :func:`grabcut`, then every pixel where the cut disagrees with ``reference``
+    (``[h, w]`` bool, e.g. the silhouette the trimap came from) keeps the cut's label only where
+    the pixel's own colour backs it: its log-likelihood under the cut's robot colour model minus
+    that under its background model exceeds ``defer_nats`` (for robot; below ``-defer_nats``
+    for background). Elsewhere the reference stands.
+
+    GrabCut's smoothness term shortens outlines where the robot's edge is faint (a pale arm
+    against a pale wall, a shadowed side): the cut then lies inside the true outline on those
+    sides, and a pose refit on such cuts moves away (farther from the camera) round after
+    round. Where the colours cannot tell, deferring keeps the estimate's outline; where they
+    can, the cut still moves it."""
+    ref = np.asarray(reference, bool)
+    cut = _cut(image, trimap, iterations, margin)
+    if cut is None:
+        return np.zeros(trimap.shape, bool)
+    mask, (y0, y1, x0, x1), crop, bgd, fgd = cut
+    own = ref[y0:y1, x0:x1]
+    differ = mask != own
+    if differ.any():
+        colours = crop[differ].astype(np.float64)
+        llr = gmm_log_likelihood(fgd, colours) - gmm_log_likelihood(bgd, colours)
+        backed = np.where(mask[differ], llr > defer_nats, llr < -defer_nats)
+        merged = own.copy()
+        merged[differ] = np.where(backed, mask[differ], own[differ])
+        mask = merged
+    out = ref.copy()
+    out[y0:y1, x0:x1] = mask
     return out
 
 

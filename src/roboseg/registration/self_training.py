@@ -15,7 +15,9 @@ estimate becomes a GrabCut trimap (robot for sure well inside it, background for
 outside, probable in a band about its outline), and the cut, driven by the image's own colours
 and edges, gives the masks. A network fine-tuned on the estimate's silhouettes learns them back,
 misplaced outlines included; the cut cannot carry the estimate's outline over, it follows the
-image, so the estimate moves from round to round.
+image, so the estimate moves from round to round. Where the cut departs from the silhouette on
+a pixel whose colour does not back it (a faint edge, which GrabCut's smoothness term shaves),
+the silhouette stands (``grabcut_defer``).
 
 The fine-tuned model learns only the registered robot (other robots and people are background
 in its labels) and sees zeros as the in-context prior of a 4-channel model.
@@ -42,7 +44,7 @@ from torch.utils.data import DataLoader, Dataset
 from roboseg.annotate import MaskRenderer, thin_evenly
 from roboseg.errors import CameraError, ModelFileError, SegmentationError
 from roboseg.recording import RecordingReader, StereoFrame
-from roboseg.registration.grabcut import grabcut, silhouette_trimap
+from roboseg.registration.grabcut import grabcut, grabcut_deferring, silhouette_trimap
 from roboseg.registration.pose import rotation_angle
 from roboseg.registration.register import (
     Configuration,
@@ -102,8 +104,11 @@ class SelfTrainingConfig:
     from a trimap of its silhouette: robot for sure ``grabcut_inner_px`` inside the outline,
     background for sure ``grabcut_outer_px`` outside it, at the images' own size;
     ``grabcut_iterations`` GrabCut iterations; ``grabcut_keep_out``: pixels outside the
-    silhouette that round 0's masks call background are background for sure); the training
-    settings are then unused.
+    silhouette that round 0's masks call background are background for sure;
+    ``grabcut_defer``: where the cut departs from the silhouette, it is kept only where the
+    pixel's colour backs it by this log-likelihood ratio (nats) under the cut's colour models,
+    see :func:`~roboseg.registration.grabcut.grabcut_deferring`; None: the cut as it is); the
+    training settings are then unused.
     """
 
     rounds: int = 0
@@ -125,6 +130,7 @@ class SelfTrainingConfig:
     grabcut_outer_px: int = 10
     grabcut_iterations: int = 3
     grabcut_keep_out: bool = True
+    grabcut_defer: float | None = 1.0
 
     def __post_init__(self) -> None:
         def bad(name: str, rule: str, value: Any) -> SelfTrainingError:
@@ -139,6 +145,11 @@ class SelfTrainingConfig:
                       (self.grabcut_inner_px, self.grabcut_outer_px))
         if self.grabcut_iterations < 1:
             raise bad("grabcut_iterations", ">= 1", self.grabcut_iterations)
+        if self.grabcut_defer is not None and not (
+            self.grabcut_defer >= 0 and math.isfinite(self.grabcut_defer)
+        ):
+            raise bad("grabcut_defer", "null or a log-likelihood ratio >= 0 (nats)",
+                      self.grabcut_defer)
         for name in ("steps", "batch_size", "max_frames"):
             if getattr(self, name) < 1:
                 raise bad(name, ">= 1", getattr(self, name))
@@ -399,8 +410,9 @@ def grabcut_masks(
 ) -> np.ndarray:
     """Masks ``[N, H, W]`` bool of RGB ``images`` ``[N, H, W, 3]`` uint8, each cut by GrabCut
     from the trimap of its silhouette (``[N, H, W]`` bool; :func:`silhouette_trimap`, with
-    ``background`` ``[N, H, W]`` bool as sure background outside it). An empty silhouette, or
-    one whose band leaves no background to learn from, is kept as it is."""
+    ``background`` ``[N, H, W]`` bool as sure background outside it), deferring to the
+    silhouette where the colours cannot tell when ``cfg.grabcut_defer`` is set. An empty
+    silhouette, or one whose band leaves no background to learn from, is kept as it is."""
     out = np.zeros(silhouettes.shape, bool)
     for i, (img, sil) in enumerate(zip(images, silhouettes, strict=True)):
         if not sil.any():
@@ -409,7 +421,11 @@ def grabcut_masks(
                                    None if background is None else background[i])
         try:
             cv2.setRNGSeed(cfg.seed)  # GrabCut's colour models start from k-means
-            out[i] = grabcut(img, trimap, cfg.grabcut_iterations, margin=0.05)
+            if cfg.grabcut_defer is None:
+                out[i] = grabcut(img, trimap, cfg.grabcut_iterations, margin=0.05)
+            else:
+                out[i] = grabcut_deferring(img, trimap, sil, cfg.grabcut_iterations,
+                                           margin=0.05, defer_nats=cfg.grabcut_defer)
         except SegmentationError:
             out[i] = sil
     return out
@@ -695,6 +711,7 @@ def self_train(
                 "inner_px": cfg.grabcut_inner_px,
                 "outer_px": cfg.grabcut_outer_px,
                 "keep_out": bool(keep_out),
+                "defer_nats": cfg.grabcut_defer,
                 "label_iou": round(label_iou, 4),
             }
         else:
