@@ -124,7 +124,7 @@ def gmm_log_likelihood(model: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     for w, mu, cov in zip(weights, means, covs, strict=True):
         if w <= 0:
             continue
-        c = cov + 1e-6 * np.eye(3)  # OpenCV adds the same to singular covariances
+        c = cov + 1e-6 * np.eye(3)  # a guard: OpenCV already keeps them invertible
         d = x - mu
         maha = np.einsum("ni,ij,nj->n", d, np.linalg.inv(c), d)
         out = np.logaddexp(
