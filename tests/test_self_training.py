@@ -367,15 +367,22 @@ def test_one_round_end_to_end(recording: dict, tmp_path: Path, monkeypatch, caps
 # GrabCut rounds
 
 
-def test_grabcut_masks_follow_the_image_not_the_silhouette() -> None:
-    """A light bar on a mottled darker background; the silhouette handed in is the bar shifted
-    3 px right and 1 px down (an estimate a few mm off): the cut lands on the bar."""
-    g = np.random.default_rng(0)
+def _light_cross(seed: int | np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A light cross (a bar and a post, RGB 200-240) on a mottled darker background (40-120),
+    90×160: ``(image uint8 [90, 160, 3], its mask bool)``."""
+    g = np.random.default_rng(seed)
     img = g.integers(40, 120, (90, 160, 3)).astype(np.uint8)
     truth = np.zeros((90, 160), bool)
     truth[30:42, 20:140] = True
     truth[20:80, 70:82] = True
     img[truth] = g.integers(200, 240, (int(truth.sum()), 3))
+    return img, truth
+
+
+def test_grabcut_masks_follow_the_image_not_the_silhouette() -> None:
+    """A light bar on a mottled darker background; the silhouette handed in is the bar shifted
+    3 px right and 1 px down (an estimate a few mm off): the cut lands on the bar."""
+    img, truth = _light_cross(0)
     shifted = np.roll(np.roll(truth, 3, axis=1), 1, axis=0)
     cfg = SelfTrainingConfig(masks="grabcut", grabcut_inner_px=2, grabcut_outer_px=8,
                              grabcut_keep_out=False)
@@ -478,11 +485,7 @@ def test_grabcut_defer_keeps_the_silhouette_where_the_colours_cannot_tell() -> N
     the silhouette there keeps it; a silhouette 2 px off still moves towards the bar, and an
     unreachable margin hands the silhouette back unchanged."""
     g = np.random.default_rng(2)
-    img = g.integers(40, 120, (90, 160, 3)).astype(np.uint8)
-    truth = np.zeros((90, 160), bool)
-    truth[30:42, 20:140] = True
-    truth[20:80, 70:82] = True
-    img[truth] = g.integers(200, 240, (int(truth.sum()), 3))
+    img, truth = _light_cross(g)
     wall = np.zeros_like(truth)
     wall[:30] = True
     wall &= ~truth
