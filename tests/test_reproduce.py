@@ -82,9 +82,15 @@ def test_reproduce_tiny_study_then_resume(tmp_path: Path) -> None:
     assert f"[{n_stages}/{n_stages}" in proc.stdout and "total time:" in proc.stdout
 
     # the merged, self-annotated dataset and the annotation quality against the simulator
+    # (with the lab's training recording, calibrated by its own /tf_static: lab.in_training)
     manifest = json.loads((out / "annotated" / "full" / "manifest.json").read_text())
-    assert [r["split"] for r in manifest["recordings"]] == ["train", "val", "test"]
-    assert all(r["calibration"] == "file" for r in manifest["recordings"])
+    assert [(r["file"], r["split"], r["calibration"]) for r in manifest["recordings"]] == [
+        ("or_train_00.mcap", "train", "file"), ("or_val_00.mcap", "val", "file"),
+        ("or_test_00.mcap", "test", "file"), ("lab_train_00.mcap", "train", "tf_static")]
+    assert all((out / "annotated" / "full" / r["file"]).is_file()
+               for r in manifest["recordings"])
+    assert manifest["totals"]["frames_kept"] == sum(
+        r["frames_kept"] for r in manifest["recordings"])
     quality = json.loads((out / "metrics" / "annotation.json").read_text())
     assert len(quality["rows"]) == 3 and len(quality["rows"][2]["registration"]) == 2
     for row in quality["rows"]:
@@ -100,6 +106,7 @@ def test_reproduce_tiny_study_then_resume(tmp_path: Path) -> None:
         assert section in page
     assert "### People walking through the view" in page and "| or_train_00_walkers | 1 |" in page
     assert "comes from simulated recordings" in page and "SAM 2" in page
+    assert "and the lab bootstrap's training recordings (`lab.in_training`)" in page
     assert "figure 42.0 ms" in page and "logical cores" in page
     figures = tmp_path / "docs" / "results"
     for name in ("localisation.png", "breathing.png", "qualitative_m3.png"):
@@ -284,7 +291,14 @@ def test_undraped_segmentor_chooses_the_bootstrap_or_none(
 ) -> None:
     from omegaconf import OmegaConf
 
-    from roboseg.reproduce import Layout, build_plan, model_init, model_specs, plan_study
+    from roboseg.reproduce import (
+        Layout,
+        build_plan,
+        lab_in_training,
+        model_init,
+        model_specs,
+        plan_study,
+    )
 
     cfg = OmegaConf.load(ROOT / "conf" / "reproduce.yaml")
     cfg.undraped.segmentor = segmentor
@@ -315,6 +329,8 @@ def test_undraped_segmentor_chooses_the_bootstrap_or_none(
         assert sum("start from scratch" in r.getMessage() for r in caplog.records) == 1
         caplog.clear()
         assert model_init(cfg, warn=False) == "scratch" and not caplog.records
+    # the models also learn from the lab's recordings, when there is a lab stage
+    assert lab_in_training(cfg) == (segmentor == "model")
     cfg.undraped.segmentor = "prompt"
     with pytest.raises(SystemExit, match="undraped.segmentor=prompt: not one of model, motion"):
         build_plan(cfg, layout)

@@ -223,17 +223,24 @@ def write_calibration(layout: Layout, rec: Recording) -> None:
     path.write_text(text + yaml.safe_dump({"robots": robots}, sort_keys=False))
 
 
-def merge_dataset(layout: Layout, subset: str) -> None:
+def merge_dataset(layout: Layout, subset: str, lab: Path | None = None) -> None:
     """Gather the per-recording annotations of ``subset`` into one dataset folder: the files
-    (hard links, else copies) and one ``manifest.json`` listing them all."""
+    (hard links, else copies) and one ``manifest.json`` listing them all. ``lab``: an annotated
+    lab dataset whose training recordings join the training split (its validation ones do not:
+    the models are validated on the operating room's)."""
     from roboseg.annotate.batch import MANIFEST_NAME, write_json_atomic
 
     root = layout.dataset(subset)
     root.mkdir(parents=True, exist_ok=True)
     merged: dict[str, Any] | None = None
-    for rec in layout.study:
-        part = layout.part(subset, rec)
+    parts = [(layout.part(subset, rec), None) for rec in layout.study]
+    if lab is not None:
+        parts.append((lab, "train"))
+    for part, only in parts:
         manifest = json.loads((part / MANIFEST_NAME).read_text())
+        if only is not None:
+            manifest["recordings"] = [
+                r for r in manifest["recordings"] if r["split"] == only]
         for entry in manifest["recordings"]:
             src, dst = part / entry["file"], root / entry["file"]
             dst.unlink(missing_ok=True)
@@ -366,6 +373,12 @@ def model_init(cfg: DictConfig, warn: bool = True) -> str:
     return init
 
 
+def lab_in_training(cfg: DictConfig) -> bool:
+    """Whether the recipe's models also train on the lab bootstrap's annotated training
+    recordings (``lab.in_training``; only where a lab stage runs: ``undraped.segmentor=model``)."""
+    return bool(cfg.lab.get("in_training", False)) and undraped_segmentor(cfg) == "model"
+
+
 def _train_steps(
     layout: Layout, name: str, experiment: str, root: Path, overrides: Sequence[str],
     cfg: DictConfig, ckpt: Path, onnx: Path,
@@ -447,6 +460,7 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
     for rec in layout.study:
         steps.append(Step(f"calibration_{rec.stem}", fn=lambda r=rec: write_calibration(layout, r)))
     subsets = list(dict.fromkeys(m.subset for m in layout.models))
+    lab_training = layout.bootstrap / "annotated" if lab_in_training(cfg) else None
     for subset in subsets:
         for rec in layout.study:
             steps.append(Step(f"annotate_{subset}_{rec.stem}", [
@@ -454,7 +468,8 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
                 f"out={layout.part(subset, rec)}", f"calibration={layout.calibration(rec)}",
                 f"phase={cfg.annotate.phase}", f"subset={subset}", *cfg.annotate.overrides,
             ]))
-        steps.append(Step(f"dataset_{subset}", fn=lambda s=subset: merge_dataset(layout, s)))
+        steps.append(Step(f"dataset_{subset}",
+                          fn=lambda s=subset: merge_dataset(layout, s, lab_training)))
     steps.append(Step("annotation_quality",
                       fn=lambda: measure_annotation(layout, subsets[0], cfg)))
     if layout.walkers:

@@ -399,7 +399,7 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
         f"page written {today()} on {machine_description()}.\n"
     )
     add("## At a glance\n")
-    from roboseg.reproduce import model_init, undraped_segmentor
+    from roboseg.reproduce import lab_in_training, model_init, undraped_segmentor
 
     segmentor = undraped_segmentor(cfg)
     glance = at_a_glance(
@@ -500,7 +500,10 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
     add(
         f"IoU (mean ± std over frames) on the {cfg.annotate.phase} frames of the two-robot test "
         f"recording against {labels}. Models of the `{cfg.recipe}` recipe, all trained on the "
-        "self-annotated operating-room recordings, starting from "
+        "self-annotated operating-room recordings"
+        + (" and the lab bootstrap's training recordings (`lab.in_training`)"
+           if lab_in_training(cfg) else "")
+        + ", starting from "
         + ("the lab bootstrap's weights" if model_init(cfg, warn=False) == "bootstrap"
            else "random weights")
         + "; `val IoU` is the best checkpoint's IoU on the validation recording (self-annotated "
