@@ -96,6 +96,11 @@ class Layout:
         return self.out / "bootstrap"
 
     @property
+    def lab_dataset(self) -> Path:
+        """The lab recordings annotated from their own ``/tf_static`` (the bootstrap's data)."""
+        return self.bootstrap / "annotated"
+
+    @property
     def bootstrap_ckpt(self) -> Path:
         return self.bootstrap / "model.ckpt"
 
@@ -424,7 +429,7 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
             steps.append(simulate(
                 rec, [f"drape.undraped_fraction={float(cfg.lab.undraped_fraction)}"], lab_frames
             ))
-        lab_root = layout.bootstrap / "annotated"
+        lab_root = layout.lab_dataset
         steps.append(Step("annotate_lab", [
             script("roboseg-annotate"), f"in={layout.recording(layout.lab[0]).parent}",
             f"out={lab_root}", "phase=undraped", *cfg.annotate.overrides,
@@ -460,7 +465,7 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
     for rec in layout.study:
         steps.append(Step(f"calibration_{rec.stem}", fn=lambda r=rec: write_calibration(layout, r)))
     subsets = list(dict.fromkeys(m.subset for m in layout.models))
-    lab_training = layout.bootstrap / "annotated" if lab_in_training(cfg) else None
+    lab_training = layout.lab_dataset if lab_in_training(cfg) else None
     for subset in subsets:
         for rec in layout.study:
             steps.append(Step(f"annotate_{subset}_{rec.stem}", [
