@@ -344,3 +344,49 @@ def test_masks_of_names_the_kind_of_self_training_rounds() -> None:
     assert _masks_of({**reg, "self_training_masks": "self_trained"}) == (
         "model + self-training 3, kept 2")
     assert _masks_of({"segmentor": "motion", "self_training_rounds": 0}) == "motion"
+
+
+def test_registration_error_scores_every_self_training_round(
+    tmp_path: Path, default_robot
+) -> None:
+    """Each round's estimate in pose.yaml is scored against /tf_static like the kept one; the
+    page cell lists them in order with the kept round in bold."""
+    import yaml
+
+    from roboseg.recording import RecordingReader
+    from roboseg.reproduce_report import _estimate_cells, registration_error
+    from roboseg.sim import SimConfig, simulate_recording
+
+    path = tmp_path / "tiny.mcap"
+    simulate_recording(SimConfig(frames=6, seed=3, width=96, height=64, undraped_fraction=0.5),
+                       path)
+    with RecordingReader(path) as r:
+        T_true = r.lookup(r.camera_infos("left").frame_id,
+                          f"robot_0/{default_robot.root_link}")
+    off = T_true.copy()
+    off[:3, 3] += [0.0, 0.012, 0.0]  # 12 mm
+    rounds = [{"round": 0, "T_cam_base": off.tolist(), "kept": False},
+              {"round": 1, "failed": "no masks", "kept": False},
+              {"round": 2, "T_cam_base": T_true.tolist(), "kept": True}]
+    pose = tmp_path / "pose.yaml"
+    pose.write_text(yaml.safe_dump({"T_cam_base": T_true.tolist(), "robot": "robot_0",
+                                    "converged": True, "self_training": rounds}))
+    err = registration_error(pose, path, default_robot, "undraped")
+    by_round = err["tool_median_mm_by_round"]
+    assert by_round[1] is None
+    np.testing.assert_allclose([by_round[0], by_round[2]], [12.0, 0.0], atol=1e-6)
+    assert err["tool_median_mm"] == pytest.approx(0.0, abs=1e-6)
+    assert err["self_training_kept"] == 2
+    assert _estimate_cells(err)[-1] == "12.0 → - → **0.0**"
+    assert _estimate_cells({**err, "tool_median_mm_by_round": [3.0]})[-1] == "–"
+
+
+def test_rounds_plot_draws_registrations_that_ran_rounds(tmp_path: Path) -> None:
+    from roboseg.reproduce_report import rounds_plot
+
+    one = {"label": "a robot_0", "tool_median_mm_by_round": [170.0, 52.8, None, 10.2],
+           "self_training_kept": 3}
+    assert rounds_plot([{**one, "tool_median_mm_by_round": [3.0]}], tmp_path / "x.png") is None
+    png = rounds_plot([one, {**one, "label": "b", "tool_median_mm_by_round": []}],
+                      tmp_path / "r.png")
+    assert png == tmp_path / "r.png" and png.stat().st_size > 1000

@@ -117,6 +117,12 @@ def registration_error(
     q1, med, q3 = np.percentile(tool, [25, 50, 75])
     rounds = doc.get("self_training") or []
     kept = [r["round"] for r in rounds if r.get("kept")]
+    # each self-training round's estimate scored alike (None: the round wrote no pose)
+    by_round = [
+        None if r.get("T_cam_base") is None else float(np.median(
+            frame_errors_mm(robot, q, np.asarray(r["T_cam_base"], np.float64), T_true)[:, -1]))
+        for r in rounds
+    ]
     return {
         "robot": name,
         "method": doc.get("method"),
@@ -127,6 +133,8 @@ def registration_error(
         # what made the rounds' masks: grabcut | self_trained (a fine-tuned network)
         "self_training_masks": (rounds[1].get("masks") or {}).get("kind") if len(rounds) > 1
         else None,
+        # tool-centre median (mm) of every round's estimate, round 0 first
+        "tool_median_mm_by_round": by_round,
         "converged": bool(doc.get("converged", False)),
         "residual_iou": doc.get("residual_iou"),
         "frames": int(len(q)),
@@ -170,6 +178,40 @@ def localisation_plot(entries: Sequence[dict[str, Any]], path: Path) -> Path:
     ax2.set_yscale("symlog", linthresh=1.0)
     ax2.grid(alpha=0.3)
     ax2.set_title("tool centre, every frame of the phase")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def rounds_plot(entries: Sequence[dict[str, Any]], path: Path) -> Path | None:
+    """PNG: tool-centre median error (mm, log scale) of each self-training round's estimate,
+    a line per undraped registration (``entries``: :func:`registration_error` results with a
+    ``label``), the kept round circled; None when no entry ran a round."""
+    shown = [e for e in entries if len(e.get("tool_median_mm_by_round") or []) > 1]
+    if not shown:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for e in shown:
+        ys = [np.nan if y is None else y for y in e["tool_median_mm_by_round"]]
+        (line,) = ax.plot(range(len(ys)), ys, marker="o", ms=3, label=e["label"])
+        k = e.get("self_training_kept")
+        if k is not None and k < len(ys):
+            ax.plot([k], [ys[k]], "o", ms=10, mfc="none", color=line.get_color())
+    ax.axhline(TARGET_TOOL_MM, color="0.4", lw=0.8, ls=":")
+    ax.set_yscale("log")
+    ax.set_xlabel("self-training round (0: the first registration)")
+    ax.set_ylabel("tool-centre median error [mm]")
+    ax.set_title(f"undraped estimates by round (circled: kept; dotted: {TARGET_TOOL_MM:g} mm)")
+    ax.xaxis.get_major_locator().set_params(integer=True)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=7)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
@@ -297,21 +339,32 @@ def _masks_of(reg: dict[str, Any]) -> str:
     return text
 
 
+def _by_round(reg: dict[str, Any]) -> str:
+    """Tool-centre median (mm) of each self-training round's estimate, round 0 first, the kept
+    round in bold: ``169.6 → 52.8 → **10.2**``; ``–`` without rounds."""
+    errs = reg.get("tool_median_mm_by_round") or []
+    if len(errs) < 2:
+        return "–"
+    kept = reg.get("self_training_kept")
+    cells = [fmt(e, 1) if k != kept else f"**{fmt(e, 1)}**" for k, e in enumerate(errs)]
+    return " → ".join(cells)
+
+
 #: Columns of :func:`_estimate_cells`.
 ESTIMATE_COLUMNS = ["undraped masks", "converged", "tool error [mm]", "base error [mm]",
-                    "rotation [°]"]
+                    "rotation [°]", "tool error by round [mm]"]
 
 
 def _estimate_cells(reg: dict[str, Any]) -> list[str]:
     """One undraped estimate's :data:`ESTIMATE_COLUMNS` (``reg``: :func:`registration_error`,
     or ``{"error": ...}`` when no pose was written)."""
     if "error" in reg:
-        return ["–", reg["error"], "–", "–", "–"]
+        return ["–", reg["error"], "–", "–", "–", "–"]
     return [
         _masks_of(reg), "yes" if reg["converged"] else "**no**",
         f"{fmt(reg['tool_median_mm'], 1)} ({fmt(reg['tool_q1_mm'], 1)}–"
         f"{fmt(reg['tool_q3_mm'], 1)})",
-        fmt(reg["link_median_mm"][0], 1), fmt(reg["rotation_deg"], 2),
+        fmt(reg["link_median_mm"][0], 1), fmt(reg["rotation_deg"], 2), _by_round(reg),
     ]
 
 
@@ -463,7 +516,8 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
             f"{cfg.annotate.phase} phase is then annotated with that estimate "
             "(`roboseg-annotate calibration=…`). Columns: the estimate's error against the "
             "simulator's `/tf_static` over every undraped frame (tool centre: median and "
-            "quartiles; robot base L0; rotation), and the IoU of the self-annotated masks "
+            "quartiles; robot base L0; rotation; *by round*: the tool-centre median of every "
+            "round's estimate, the kept one in bold), and the IoU of the self-annotated masks "
             "against the simulator's ground-truth masks (`robot_mask_gt`) per frame.\n"
         )
         rows = []
@@ -477,6 +531,10 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
                 ])
         add(md_table(["recording", "split", "robot", *ESTIMATE_COLUMNS, "annotated frames",
                       "IoU vs simulator", "min IoU"], rows))
+        rounds = [{**reg, "label": f"{row['recording']} {reg['robot']}"}
+                  for row in ann["rows"] for reg in row["registration"] if "error" not in reg]
+        if rounds_plot(rounds, figures / "self_training_rounds.png"):
+            add(f"\n![tool-centre error by self-training round]({rel}/self_training_rounds.png)\n")
 
     walk = read_json(out / "metrics" / "walkers.json")
     if walk is not None:
