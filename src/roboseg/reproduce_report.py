@@ -532,7 +532,7 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
         add(md_table(["recording", "split", "robot", *ESTIMATE_COLUMNS, "annotated frames",
                       "IoU vs simulator", "min IoU"], rows))
         rounds = [{**reg, "label": f"{row['recording']} {reg['robot']}"}
-                  for row in ann["rows"] for reg in row["registration"] if "error" not in reg]
+                  for row in ann["rows"] for reg in row["registration"]]
         if rounds_plot(rounds, figures / "self_training_rounds.png"):
             add(f"\n![tool-centre error by self-training round]({rel}/self_training_rounds.png)\n")
 
