@@ -407,17 +407,31 @@ def _train_steps(
     ]
 
 
+def operating_room_size(cfg: DictConfig) -> tuple[int, int]:
+    """Width and height (px) of the operating-room recordings: ``operating_room.width`` /
+    ``height``, or the size of every recording (``width`` / ``height``) where those are null."""
+    room = cfg.operating_room
+    width = room.get("width") if room.get("width") is not None else cfg.width
+    height = room.get("height") if room.get("height") is not None else cfg.height
+    if int(width) < 16 or int(height) < 16:
+        raise SystemExit(f"operating_room.width / height must be >= 16 px, got {width} x {height}")
+    return int(width), int(height)
+
+
 def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
     """Every stage of the run, in order (all paths are known before anything runs)."""
     steps: list[Step] = []
-    frames, width, height = int(cfg.frames), int(cfg.width), int(cfg.height)
+    frames = int(cfg.frames)
+    lab_size = (int(cfg.width), int(cfg.height))
+    or_size = operating_room_size(cfg)
 
-    def simulate(rec: Recording, extra: Sequence[str], n_frames: int = frames) -> Step:
+    def simulate(rec: Recording, extra: Sequence[str], size: tuple[int, int],
+                 n_frames: int = frames) -> Step:
         path = layout.recording(rec)
         return Step(f"simulate_{rec.stem}", [
             script("roboseg-simulate"), f"out={path.parent}", f"name={rec.stem}",
             f"frames={n_frames}", f"seed={rec.seed}", f"robots={rec.robots}",
-            f"camera.width={width}", f"camera.height={height}",
+            f"camera.width={size[0]}", f"camera.height={size[1]}",
             *cfg.operating_room.simulate_overrides, *extra,
         ])
 
@@ -427,7 +441,8 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
         lab_frames = frames if cfg.lab.get("frames") is None else int(cfg.lab.frames)
         for rec in layout.lab:
             steps.append(simulate(
-                rec, [f"drape.undraped_fraction={float(cfg.lab.undraped_fraction)}"], lab_frames
+                rec, [f"drape.undraped_fraction={float(cfg.lab.undraped_fraction)}"], lab_size,
+                lab_frames,
             ))
         lab_root = layout.lab_dataset
         steps.append(Step("annotate_lab", [
@@ -449,9 +464,9 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
     site = cfg.operating_room.get("site")
     at_site = [] if site is None else [f"site={int(site)}"]
     for rec in layout.study:
-        steps.append(simulate(rec, at_site))
+        steps.append(simulate(rec, at_site, or_size))
     for rec in layout.walkers:  # walkers.people checked by plan_walkers
-        steps.append(simulate(rec, [*at_site, f"walkers={int(cfg.walkers.people)}"]))
+        steps.append(simulate(rec, [*at_site, f"walkers={int(cfg.walkers.people)}"], or_size))
     for rec in [*layout.study, *layout.walkers]:
         for robot in robots_of(rec):
             steps.append(Step(

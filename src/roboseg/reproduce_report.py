@@ -437,6 +437,9 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
     rel = figures.name
     parts: list[str] = []
     add = parts.append
+    from roboseg.reproduce import operating_room_size
+
+    or_w, or_h = operating_room_size(cfg)
     add("# Results: the paper's pipeline on simulated data\n")
     add(
         "**Every number on this page comes from simulated recordings** written by roboseg's own "
@@ -448,7 +451,8 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
     )
     add(
         f"Produced by `make reproduce` (`python -m roboseg.reproduce`, recipe `{cfg.recipe}`, "
-        f"{cfg.frames} frames per recording at {cfg.width}×{cfg.height}, seed {cfg.seed}); "
+        f"{cfg.frames} frames per recording, the lab's at {cfg.width}×{cfg.height}, the operating "
+        f"room's at {or_w}×{or_h}, seed {cfg.seed}); "
         f"page written {today()} on {machine_description()}.\n"
     )
     add("## At a glance\n")
