@@ -26,6 +26,7 @@ from roboseg.registration.self_training import (
     SelfTrainingConfig,
     SelfTrainingError,
     grabcut_masks,
+    keep_out_background,
     kept_round,
     pose_change,
     predict_probabilities,
@@ -89,6 +90,8 @@ def test_config_errors_name_the_setting(tmp_path: Path) -> None:
         SelfTrainingConfig(steps=0)
     with pytest.raises(SelfTrainingError, match="self_training.image_size"):
         SelfTrainingConfig(image_size=(16, 64))
+    with pytest.raises(SelfTrainingError, match="grabcut_keep_out_margin_px must be >= 0 px"):
+        SelfTrainingConfig(grabcut_keep_out_margin_px=-1)
     missing = tmp_path / "nope.ckpt"
     with pytest.raises(ModelFileError, match=f"self_training.init_ckpt: no such file {missing}"):
         SelfTrainingConfig(rounds=1, init_ckpt=str(missing))
@@ -453,6 +456,32 @@ def test_grabcut_keep_out_leaves_a_passer_by_out_of_the_cut() -> None:
     assert not (kept & person).any() and _iou(kept, truth) > 0.95
     trimap = silhouette_trimap(truth, 2, 10, background=~first)
     assert (trimap[person] == cv2.GC_BGD).all()
+
+
+def test_keep_out_margin_lets_the_cut_grow_back_over_a_thin_first_mask() -> None:
+    """Round 0 drew the bar 2 px too thin on each side and the estimate's silhouette is as
+    thin: kept out with no margin, the 2 px left between the silhouette and the true edge are
+    sure background and the cut cannot reach the edge; with a 3 px margin it takes the bar
+    whole, and a light patch 8 px from round 0's mask is still kept out."""
+    thin = np.zeros((60, 120), bool)
+    thin[22:30, 20:100] = True
+    np.testing.assert_array_equal(keep_out_background(thin, 0), ~thin)
+    grown = keep_out_background(thin, 3)
+    assert not grown[19, 50] and not grown[32, 50] and grown[18, 50] and grown[33, 50]
+    assert grown[26, 16] and not grown[26, 17]  # 3 px beyond the bar's end, not 4
+
+    g = np.random.default_rng(2)
+    img = g.integers(40, 120, (60, 120, 3)).astype(np.uint8)
+    truth = np.zeros_like(thin)
+    truth[20:32, 18:102] = True
+    patch = np.zeros_like(thin)
+    patch[38:44, 40:80] = True  # 8 px below round 0's mask, inside the silhouette's band
+    img[truth | patch] = g.integers(200, 240, (int((truth | patch).sum()), 3))
+    cfg = SelfTrainingConfig(masks="grabcut", grabcut_inner_px=2, grabcut_outer_px=10)
+    held = grabcut_masks(img[None], thin[None], cfg, keep_out_background(thin, 0)[None])[0]
+    freed = grabcut_masks(img[None], thin[None], cfg, keep_out_background(thin, 3)[None])[0]
+    assert not (held & truth & ~thin).any()  # the true edge stays out of reach
+    assert _iou(freed, truth) > 0.95 and not (freed & patch).any()
 
 
 def test_gmm_log_likelihood_reads_opencv_grabcut_models() -> None:

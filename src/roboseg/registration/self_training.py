@@ -104,7 +104,8 @@ class SelfTrainingConfig:
     from a trimap of its silhouette: robot for sure ``grabcut_inner_px`` inside the outline,
     background for sure ``grabcut_outer_px`` outside it, at the images' own size;
     ``grabcut_iterations`` GrabCut iterations; ``grabcut_keep_out``: pixels outside the
-    silhouette that round 0's masks call background are background for sure;
+    silhouette that round 0's masks call background are background for sure, except within
+    ``grabcut_keep_out_margin_px`` of those masks (:func:`keep_out_background`);
     ``grabcut_defer``: where the cut departs from the silhouette, it is kept only where the
     pixel's colour backs it by this log-likelihood ratio (nats) under the cut's colour models,
     see :func:`~roboseg.registration.grabcut.grabcut_deferring`; None: the cut as it is); the
@@ -130,6 +131,7 @@ class SelfTrainingConfig:
     grabcut_outer_px: int = 10
     grabcut_iterations: int = 3
     grabcut_keep_out: bool = True
+    grabcut_keep_out_margin_px: int = 0
     grabcut_defer: float | None = 1.0
 
     def __post_init__(self) -> None:
@@ -143,6 +145,8 @@ class SelfTrainingConfig:
         if self.grabcut_inner_px < 0 or self.grabcut_outer_px < 1:
             raise bad("grabcut_inner_px / grabcut_outer_px", ">= 0 / >= 1 px",
                       (self.grabcut_inner_px, self.grabcut_outer_px))
+        if self.grabcut_keep_out_margin_px < 0:
+            raise bad("grabcut_keep_out_margin_px", ">= 0 px", self.grabcut_keep_out_margin_px)
         if self.grabcut_iterations < 1:
             raise bad("grabcut_iterations", ">= 1", self.grabcut_iterations)
         if self.grabcut_defer is not None and not (
@@ -198,6 +202,21 @@ def kept_round(mean_ious: Sequence[float]) -> int:
     """The round whose estimate is kept: the highest mean residual IoU, the latest on ties."""
     best = max(mean_ious)
     return max(i for i, v in enumerate(mean_ious) if v == best)
+
+
+def keep_out_background(first_mask: np.ndarray, margin_px: int) -> np.ndarray:
+    """Sure background ``[H, W]`` bool for GrabCut's keep-out: what round 0's mask
+    (``[H, W]`` bool) calls background farther than ``margin_px`` from its robot pixels.
+
+    Round 0's segmentor tends to draw the robot thinner than it is; keeping out every pixel it
+    misses forbids the cut to grow back over the robot's true edge, so rounds started from an
+    estimate too far away stay too far. A margin leaves the robot's edge to the colours and
+    still keeps out what lies well away from it (a person passing by)."""
+    m8 = np.asarray(first_mask, np.uint8)
+    if margin_px > 0:
+        m8 = cv2.dilate(m8, cv2.getStructuringElement(
+            cv2.MORPH_ELLIPSE, (2 * margin_px + 1, 2 * margin_px + 1)))
+    return m8 == 0
 
 
 # --------------------------------------------------------------------------------------------
@@ -682,7 +701,7 @@ def self_train(
                 for c, m in enumerate(first_masks(frame)):  # type: ignore[misc]
                     m8 = cv2.resize(np.asarray(m, np.uint8), (size[1], size[0]),
                                     interpolation=cv2.INTER_NEAREST)
-                    background[n, c] = m8 == 0
+                    background[n, c] = keep_out_background(m8, cfg.grabcut_keep_out_margin_px)
     flat = images.reshape(-1, *size, 3)
     q = np.stack([joints[i] for i in indices])
     read_s = time.perf_counter() - t0
@@ -711,6 +730,7 @@ def self_train(
                 "inner_px": cfg.grabcut_inner_px,
                 "outer_px": cfg.grabcut_outer_px,
                 "keep_out": bool(keep_out),
+                "keep_out_margin_px": cfg.grabcut_keep_out_margin_px if keep_out else None,
                 "defer_nats": cfg.grabcut_defer,
                 "label_iou": round(label_iou, 4),
             }
