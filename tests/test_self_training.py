@@ -19,14 +19,17 @@ from omegaconf import DictConfig
 from roboseg.config import CONF_DIR
 from roboseg.errors import ModelFileError
 from roboseg.recording import RecordingReader
-from roboseg.registration.grabcut import gmm_log_likelihood, silhouette_trimap
+from roboseg.registration.grabcut import (
+    gmm_log_likelihood,
+    keep_out_background,
+    silhouette_trimap,
+)
 from roboseg.registration.self_training import (
     FramePairs,
     PredictedMasks,
     SelfTrainingConfig,
     SelfTrainingError,
     grabcut_masks,
-    keep_out_background,
     kept_round,
     pose_change,
     predict_probabilities,

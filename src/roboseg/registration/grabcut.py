@@ -33,6 +33,7 @@ __all__ = [
     "grabcut",
     "grabcut_deferring",
     "gmm_log_likelihood",
+    "keep_out_background",
     "silhouette_trimap",
 ]
 
@@ -191,6 +192,20 @@ def silhouette_trimap(
     if background is not None:
         out[np.asarray(background, bool) & ~sil] = cv2.GC_BGD
     return out
+
+
+def keep_out_background(first_mask: np.ndarray, margin_px: int) -> np.ndarray:
+    """Sure background ``[H, W]`` bool for GrabCut's keep-out: what round 0's mask
+    (``[H, W]`` bool) calls background farther than ``margin_px`` from its robot pixels.
+
+    Round 0's segmentor tends to draw the robot thinner than it is; keeping out every pixel it
+    misses forbids the cut to grow back over the robot's true edge, so rounds started from an
+    estimate too far away stay too far. A margin leaves the robot's edge to the colours and
+    still keeps out what lies well away from it (a person passing by)."""
+    m8 = np.asarray(first_mask, np.uint8)
+    if margin_px > 0:
+        m8 = cv2.dilate(m8, _disc(margin_px))
+    return m8 == 0
 
 
 def _keep_components(mask: np.ndarray, seeds: np.ndarray, min_ratio: float = 0.1) -> np.ndarray:

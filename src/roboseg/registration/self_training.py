@@ -44,7 +44,12 @@ from torch.utils.data import DataLoader, Dataset
 from roboseg.annotate import MaskRenderer, thin_evenly
 from roboseg.errors import CameraError, ModelFileError, SegmentationError
 from roboseg.recording import RecordingReader, StereoFrame
-from roboseg.registration.grabcut import grabcut, grabcut_deferring, silhouette_trimap
+from roboseg.registration.grabcut import (
+    grabcut,
+    grabcut_deferring,
+    keep_out_background,
+    silhouette_trimap,
+)
 from roboseg.registration.pose import rotation_angle
 from roboseg.registration.register import (
     Configuration,
@@ -105,7 +110,8 @@ class SelfTrainingConfig:
     background for sure ``grabcut_outer_px`` outside it, at the images' own size;
     ``grabcut_iterations`` GrabCut iterations; ``grabcut_keep_out``: pixels outside the
     silhouette that round 0's masks call background are background for sure, except within
-    ``grabcut_keep_out_margin_px`` of those masks (:func:`keep_out_background`);
+    ``grabcut_keep_out_margin_px`` of those masks
+    (:func:`~roboseg.registration.grabcut.keep_out_background`);
     ``grabcut_defer``: where the cut departs from the silhouette, it is kept only where the
     pixel's colour backs it by this log-likelihood ratio (nats) under the cut's colour models,
     see :func:`~roboseg.registration.grabcut.grabcut_deferring`; None: the cut as it is); the
@@ -202,21 +208,6 @@ def kept_round(mean_ious: Sequence[float]) -> int:
     """The round whose estimate is kept: the highest mean residual IoU, the latest on ties."""
     best = max(mean_ious)
     return max(i for i, v in enumerate(mean_ious) if v == best)
-
-
-def keep_out_background(first_mask: np.ndarray, margin_px: int) -> np.ndarray:
-    """Sure background ``[H, W]`` bool for GrabCut's keep-out: what round 0's mask
-    (``[H, W]`` bool) calls background farther than ``margin_px`` from its robot pixels.
-
-    Round 0's segmentor tends to draw the robot thinner than it is; keeping out every pixel it
-    misses forbids the cut to grow back over the robot's true edge, so rounds started from an
-    estimate too far away stay too far. A margin leaves the robot's edge to the colours and
-    still keeps out what lies well away from it (a person passing by)."""
-    m8 = np.asarray(first_mask, np.uint8)
-    if margin_px > 0:
-        m8 = cv2.dilate(m8, cv2.getStructuringElement(
-            cv2.MORPH_ELLIPSE, (2 * margin_px + 1, 2 * margin_px + 1)))
-    return m8 == 0
 
 
 # --------------------------------------------------------------------------------------------
