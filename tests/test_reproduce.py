@@ -49,6 +49,7 @@ def tiny_overrides(tmp: Path) -> list[str]:
     return [
         f"out={tmp / 'out'}", f"results={tmp / 'docs' / 'results.md'}",
         "frames=12", "width=96", "height=64", "steps=1", "lab.steps=1",
+        "operating_room.width=null", "operating_room.height=null",
         "lab.recordings={train:1,val:1}", "operating_room.recordings={train:1,val:1,test:1}",
         "register.configs=3", f"register.overrides={_quoted(REGISTER)}",
         f"train_overrides={_quoted(SMALL_TRAIN)}", f"lab.overrides={_quoted(SMALL_TRAIN)}",
@@ -257,7 +258,7 @@ def test_walkers_repeat_study_recordings_with_people_walking(tmp_path: Path) -> 
     plan = {step.name: step for step in build_plan(cfg, layout)}
     sim = plan["simulate_or_train_01_walkers"].argv
     assert "walkers=2" in sim and f"seed={alone.seed}" in sim and "site=1" in sim
-    assert {"camera.width=480", "camera.height=270"} <= set(sim)  # the room's image size
+    assert {"camera.width=960", "camera.height=540"} <= set(sim)  # the room's image size
     reg = plan["register_undraped_or_train_01_walkers_robot_0"]
     assert reg.parallel and "phase=undraped" in reg.argv
     assert "walkers_quality" in plan
@@ -314,8 +315,8 @@ def test_undraped_segmentor_chooses_the_bootstrap_or_none(
     assert f"model={layout.onnx(cfg.localise.cpu.sdr)}" in draped
     # the operating-room recordings are sessions of one site; lab recordings random rooms
     assert "site=1" in plan["simulate_or_val_00"].argv
-    # the operating room at every recording's size unless it has its own
-    assert {"camera.width=480", "camera.height=270"} <= set(plan["simulate_or_val_00"].argv)
+    # the operating room at its own size (960×540), the lab at every recording's (480×270)
+    assert {"camera.width=960", "camera.height=540"} <= set(plan["simulate_or_val_00"].argv)
     if segmentor == "model":
         assert "train_bootstrap" in bootstrap and "simulate_lab_train_00" in bootstrap
         assert not any(a.startswith("site=") for a in plan["simulate_lab_train_00"].argv)
@@ -346,10 +347,12 @@ def test_operating_room_size_falls_back_to_every_recordings_size(tmp_path: Path)
     from roboseg.reproduce import Layout, build_plan, model_specs, operating_room_size, plan_study
 
     cfg = OmegaConf.load(ROOT / "conf" / "reproduce.yaml")
+    assert operating_room_size(cfg) == (960, 540)  # the default: the room's own size
+    cfg.operating_room.width = None
+    cfg.operating_room.height = None
     assert operating_room_size(cfg) == (480, 270)  # null: every recording's size
     cfg.operating_room.width = 960
     cfg.operating_room.height = 540
-    assert operating_room_size(cfg) == (960, 540)
     lab, study = plan_study(cfg)
     layout = Layout(tmp_path, tmp_path / "page.md", lab, study, model_specs(cfg))
     plan = {step.name: step for step in build_plan(cfg, layout)}
