@@ -8,7 +8,9 @@ training is bounded by ``trainer.max_steps``. Validation / test sets are map-sty
 deterministic, restricted by default to the draped frames (``draped_from_ns``).
 
 Every sample: the left image resized 16:9 → ``image_size`` (area interpolation), its robot mask
-(nearest), ``visible`` (no mask pixel on the border of the full-size mask), and for 4-channel
+(nearest), ``visible`` (no mask pixel on the border of the full-size mask), ``draped`` (the
+frame is draped, or its recording does not say: the loss may weigh the two kinds of label
+apart, ``module.loss.alpha_undraped``), and for 4-channel
 models the in-context prior: the robot silhouette rendered at a perturbed ``T_cam_base``
 (from ``/tf_static``) with the resized intrinsics, or zeros with probability
 ``1 - prior_probability``. The prior is rendered at the model input size from the robot's meshes
@@ -177,6 +179,12 @@ def resize_frame(image: np.ndarray, mask: np.ndarray, size: Sequence[int]
     return img, msk
 
 
+def is_draped(stamp_ns: int, draped_from_ns: int | None) -> bool:
+    """Whether a frame stamped ``stamp_ns`` is draped; a recording that does not say
+    (``draped_from_ns`` None, real data) counts as draped throughout."""
+    return draped_from_ns is None or int(stamp_ns) >= int(draped_from_ns)
+
+
 def robot_inside(mask: np.ndarray) -> bool:
     """True iff the mask has no pixel on the image border (robot entirely inside the frame)."""
     return not (mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any())
@@ -324,13 +332,22 @@ class StreamingFrames(IterableDataset):
     are fast-forwarded (not decoded) per worker, for exact resumption. ``max_epochs`` bounds the
     stream (None: endless). ``seen_log``: optional file receiving ``rank worker epoch index``
     lines of yielded samples (for checks of the sharding in multi-process runs).
+    ``draped_from_ns``: per reader, the first draped stamp (ns) or None; each sample carries
+    ``draped`` (bool: its frame is draped, or the recording does not say).
     """
 
     def __init__(self, readers: Sequence[Any], codec: FrameCodec, shuffle_buffer: int = 512,
                  seed: int = 0, max_epochs: int | None = None,
-                 seen_log: str | None = None) -> None:
+                 seen_log: str | None = None,
+                 draped_from_ns: Sequence[int | None] | None = None) -> None:
         super().__init__()
         self.readers = list(readers)
+        # per reader: the first draped stamp (ns); None: every frame counts as draped
+        self.draped_from_ns = (list(draped_from_ns) if draped_from_ns is not None
+                               else [None] * len(self.readers))
+        if len(self.draped_from_ns) != len(self.readers):
+            raise ValueError(f"{len(self.draped_from_ns)} draped_from_ns for "
+                             f"{len(self.readers)} readers")
         self.codec = codec
         self.shuffle_buffer = max(1, int(shuffle_buffer))
         self.seed = int(seed)
@@ -399,6 +416,7 @@ class StreamingFrames(IterableDataset):
         skip = self.worker_skip(worker, num_workers)
         log_file = open(self.seen_log, "a") if self.seen_log else None  # noqa: SIM115
         group: list[tuple[Any, StereoFrame, int, int]] = []
+        flags: list[bool] = []
         try:
             for epoch, f, frame in self._shuffled(worker, num_workers):
                 index = self.offsets[f] + frame.index
@@ -406,20 +424,23 @@ class StreamingFrames(IterableDataset):
                     skip -= 1
                     continue
                 group.append((self.readers[f], frame, index, epoch))
+                flags.append(is_draped(frame.stamp_ns, self.draped_from_ns[f]))
                 if len(group) >= self.batch_size:
-                    yield from self._emit(group, worker, log_file)
-                    group = []
-            yield from self._emit(group, worker, log_file)
+                    yield from self._emit(group, flags, worker, log_file)
+                    group, flags = [], []
+            yield from self._emit(group, flags, worker, log_file)
         finally:
             if log_file is not None:
                 log_file.close()
 
-    def _emit(self, group: Sequence[tuple[Any, StereoFrame, int, int]], worker: int,
-              log_file: Any) -> Iterator[Sample]:
-        for (_, _, index, epoch), sample in zip(group, self.codec.samples(group), strict=True):
+    def _emit(self, group: Sequence[tuple[Any, StereoFrame, int, int]], flags: Sequence[bool],
+              worker: int, log_file: Any) -> Iterator[Sample]:
+        for (_, _, index, epoch), draped, sample in zip(group, flags, self.codec.samples(group),
+                                                       strict=True):
             if sample is None:
                 self.skipped_corrupt += 1
                 continue
+            sample["draped"] = torch.tensor(draped)
             if log_file is not None:
                 log_file.write(f"{self.rank} {worker} {epoch} {index}\n")
                 log_file.flush()
@@ -440,26 +461,28 @@ class IndexedFrames(Dataset):
             raise DatasetError(f"val_phase must be one of {VAL_PHASES}, got {phase!r}")
         self.readers, self.codec = list(readers), codec
         self.offsets = np.cumsum([0] + [len(r) for r in self.readers])[:-1].tolist()
-        items: list[tuple[int, int]] = []
+        items: list[tuple[int, int, bool]] = []
         for f, (reader, entry) in enumerate(zip(self.readers, entries, strict=True)):
-            start = entry.draped_from_ns
             for frame in reader.frames(decode=False):
-                draped = start is None or frame.stamp_ns >= start
+                draped = is_draped(frame.stamp_ns, entry.draped_from_ns)
                 if phase == "all" or (phase == "draped") == draped:
-                    items.append((f, frame.index))
+                    items.append((f, frame.index, draped))
         self.items = items
 
     def __len__(self) -> int:
         return len(self.items)
 
     def __getitem__(self, k: int) -> Sample | None:
-        f, i = self.items[k]
+        f, i, draped = self.items[k]
         reader = self.readers[f]
         frame = next(iter(reader.frames(start=i, stop=i + 1)), None)
         if frame is None:
             log.warning("%s: frame %d cannot be read; skipped", reader.path, i)
             return None
-        return self.codec.sample(reader, frame, self.offsets[f] + i, epoch=0)
+        sample = self.codec.sample(reader, frame, self.offsets[f] + i, epoch=0)
+        if sample is not None:
+            sample["draped"] = torch.tensor(draped)
+        return sample
 
 
 # --- the DataModule ------------------------------------------------------------------------
@@ -554,7 +577,8 @@ class RecordingDataModule(pl.LightningDataModule):
         readers = open_readers(entries, self.manifest.camera, split)
         if split == "train":
             ds: Any = StreamingFrames(readers, self._codec(), self.shuffle_buffer, self.seed,
-                                      seen_log=self.seen_log)
+                                      seen_log=self.seen_log,
+                                      draped_from_ns=[e.draped_from_ns for e in entries])
             n = ds.n_frames()
         else:
             ds = IndexedFrames(readers, entries, self._codec(), self.val_phase)

@@ -30,7 +30,7 @@ from roboseg.augment.photometric import (
     SaltAndPepper,
     paper_ops,
 )
-from roboseg.augment.pipeline import prepare
+from roboseg.augment.pipeline import draped_map, prepare
 from roboseg.augment.prior import (
     axis_angle_to_matrix,
     perturb_pose,
@@ -158,6 +158,33 @@ def test_cmm_label_is_the_union_and_pixels_come_from_the_right_images():
         assert torch.equal(out["image"][i][:, guest], batch["image"][j][:, guest])
         assert torch.equal(out["image"][i][:, ~guest], batch["image"][i][:, ~guest])
     assert torch.equal(out["index"], batch["index"])
+
+
+def test_cmm_pastes_the_guests_kind_of_label_with_its_robot():
+    batch = painted_batch()
+    batch["draped"] = draped_map(torch.tensor([True, False, True, False]), (H, W))
+    perm = torch.tensor([1, 0, 3, 2])
+    out = CutMixMerge(p=1.0).apply(batch, perm)
+    for i, j in enumerate(perm.tolist()):
+        guest = batch["mask"][j, 0] > 0.5
+        assert torch.equal(out["draped"][i, 0][guest], batch["draped"][j, 0][guest])
+        assert torch.equal(out["draped"][i, 0][~guest], batch["draped"][i, 0][~guest])
+    assert 0 < out["draped"][0].mean() < 1  # a draped frame hosting an undraped robot
+
+
+def test_pipeline_moves_the_kind_of_label_with_the_mask():
+    batch = painted_batch(8)
+    flags = torch.tensor([True, False] * 4)
+    batch["draped"] = flags
+    pipe = AugmentationPipeline(HorizontalFlip(1.0), None, None, None,
+                                crop=RobotCrop((H // 2, W // 2), p_robot=1.0))
+    out = pipe(batch, gen(3))
+    assert out["draped"].shape == out["mask"].shape
+    # no merge: every pixel keeps its own frame's kind
+    assert torch.equal(out["draped"].amax((1, 2, 3)).bool(), flags)
+    assert torch.equal(out["draped"].amin((1, 2, 3)).bool(), flags)
+    with pytest.raises(ValueError, match="draped must be"):
+        draped_map(torch.zeros(2, 3), (H, W))
 
 
 def test_cmm_probability_and_permutation():

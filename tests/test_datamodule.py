@@ -20,6 +20,7 @@ from datamodules.recording import (
     RecordingDataModule,
     StreamingFrames,
     collate,
+    is_draped,
     read_manifest,
     resize_frame,
     robot_inside,
@@ -264,12 +265,33 @@ def test_val_is_deterministic_and_draped_only(dataset: Path) -> None:
     val = dm.datasets["val"]
     reader = val.readers[0]
     draped = [f.index for f in reader.frames(decode=False) if f.stamp_ns >= start]
-    assert [i for _, i in val.items] == draped and 0 < len(draped) < len(reader)
+    assert [i for _, i, _ in val.items] == draped and 0 < len(draped) < len(reader)
     a, b = val[0], val[0]
     assert torch.equal(a["image"], b["image"]) and int(a["index"]) == draped[0]
+    assert bool(a["draped"])  # the kind of label travels with the sample
     all_dm = RecordingDataModule(dataset, image_size=[16, 16], num_workers=0, val_phase="all")
     all_dm.setup("validate")
-    assert len(all_dm.datasets["val"]) == len(reader)
+    every = all_dm.datasets["val"]
+    assert len(every) == len(reader)
+    kinds = [bool(every[k]["draped"]) for k in range(len(every))]
+    frames = list(reader.frames(decode=False))
+    assert kinds == [f.stamp_ns >= start for f in frames] and not kinds[0] and kinds[-1]
+
+
+def test_training_samples_say_whether_their_frame_is_draped(dataset: Path) -> None:
+    manifest = read_manifest(dataset)
+    dm = RecordingDataModule(dataset, image_size=[16, 16], batch_size=4, num_workers=0)
+    dm.setup("fit")
+    train = dm.datasets["train"]
+    starts = {e.path: e.draped_from_ns for e in manifest.split("train")}
+    stamps = {}
+    for f, reader in enumerate(train.readers):
+        for frame in reader.frames(decode=False):
+            stamps[train.offsets[f] + frame.index] = frame.stamp_ns >= starts[reader.path]
+    seen = [s for _, s in zip(range(2 * len(stamps)), iter(train), strict=False)]
+    assert all(bool(s["draped"]) == stamps[int(s["index"])] for s in seen)
+    assert {bool(s["draped"]) for s in seen} == {True, False}
+    assert is_draped(5, None) and is_draped(5, 5) and not is_draped(4, 5)
 
 
 def test_prior_is_rendered_near_the_mask_with_probability(dataset: Path) -> None:

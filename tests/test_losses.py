@@ -79,3 +79,23 @@ def test_extreme_logits_stay_finite():
     loss = FocalDiceLoss()(logits, TARGET)
     loss.backward()
     assert torch.isfinite(loss) and torch.isfinite(logits.grad).all()
+
+
+def test_undraped_frames_take_their_own_focal_balance():
+    # two copies of the 2×2 example: image 0 draped (α 0.25), image 1 undraped (α 0.5)
+    logits, target = LOGITS.repeat(2, 1, 1, 1), TARGET.repeat(2, 1, 1, 1)
+    loss = FocalDiceLoss(w_focal=1.0, w_dice=0.0, alpha_undraped=0.5)
+    # α = 0.5 on every pixel: FL = 0.5 (1-p_t)^2 (-ln p_t), two pixels at p_t = 1/2 and two at
+    # 3/4 → mean 0.5·(2·0.25 ln 2 + 2·0.0625 ln 4/3)/4
+    half = 0.5 * (2 * 0.25 * math.log(2) + 2 * 0.0625 * math.log(4 / 3)) / 4
+    expected = (0.0478167 + half) / 2
+    flags = torch.tensor([True, False])
+    assert loss(logits, target, flags).item() == pytest.approx(expected, rel=1e-5)
+    per_pixel = flags.float().view(2, 1, 1, 1).expand(2, 1, 2, 2)
+    assert loss(logits, target, per_pixel).item() == pytest.approx(expected, rel=1e-5)
+    # without flags, or without alpha_undraped, every pixel takes alpha
+    assert loss(logits, target).item() == pytest.approx(0.0478167, rel=1e-5)
+    same = FocalDiceLoss(w_focal=1.0, w_dice=0.0)(logits, target, flags)
+    assert same.item() == pytest.approx(0.0478167, rel=1e-5)
+    with pytest.raises(ValueError, match="alpha_undraped must be in"):
+        FocalDiceLoss(alpha_undraped=1.5)

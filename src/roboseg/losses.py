@@ -12,6 +12,12 @@ frames without robot pixels are left to the focal term, which already penalises 
 positive there (a per-image Dice of an empty target would be 1 for almost any prediction).
 With ``per_image=False`` the sums run over the whole batch (smp's binary ``DiceLoss``), which
 lets large silhouettes dominate.
+
+Two kinds of label: on a draped frame the label is the robot's silhouette *under* the drape, so
+the visible drape around it is background; on an undraped frame the label's outline is the
+robot's visible one. ``alpha_undraped`` (None: ``alpha`` everywhere) sets the focal balance of
+the pixels of undraped frames apart (``draped``: float map ``[B,1,H,W]`` or flags ``[B]``, 1 on
+draped frames).
 """
 
 from __future__ import annotations
@@ -22,9 +28,13 @@ from torch import nn
 
 
 def focal_loss(
-    logits: torch.Tensor, target: torch.Tensor, alpha: float = 0.25, gamma: float = 2.0
+    logits: torch.Tensor,
+    target: torch.Tensor,
+    alpha: float | torch.Tensor = 0.25,
+    gamma: float = 2.0,
 ) -> torch.Tensor:
-    """Mean α-balanced binary focal loss of ``logits`` against a {0,1} ``target`` (same shape)."""
+    """Mean α-balanced binary focal loss of ``logits`` against a {0,1} ``target`` (same shape);
+    ``alpha`` a number or a tensor broadcasting to the target (α per pixel)."""
     target = target.to(logits.dtype)
     log_p = F.logsigmoid(logits)  # log p, numerically stable
     log_not_p = F.logsigmoid(-logits)  # log (1 - p)
@@ -63,17 +73,37 @@ class FocalDiceLoss(nn.Module):
         gamma: float = 2.0,
         per_image: bool = True,
         eps: float = 1e-6,
+        alpha_undraped: float | None = None,
     ) -> None:
         super().__init__()
+        for name, a in (("alpha", alpha), ("alpha_undraped", alpha_undraped)):
+            if a is not None and not 0.0 <= float(a) <= 1.0:
+                raise ValueError(f"loss {name} must be in [0, 1], got {a}")
         self.w_focal, self.w_dice = w_focal, w_dice
         self.alpha, self.gamma = alpha, gamma
         self.per_image, self.eps = per_image, eps
+        self.alpha_undraped = None if alpha_undraped is None else float(alpha_undraped)
 
-    def forward(self, logits: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    def pixel_alpha(
+        self, target: torch.Tensor, draped: torch.Tensor | None
+    ) -> float | torch.Tensor:
+        """The focal balance: ``alpha``, or per pixel ``alpha`` on draped frames' pixels and
+        ``alpha_undraped`` on undraped ones (``draped`` flags ``[B]`` or a map like target)."""
+        if self.alpha_undraped is None or draped is None:
+            return self.alpha
+        kind = draped.to(target.dtype)
+        if kind.dim() == 1:
+            kind = kind.view(-1, *([1] * (target.dim() - 1)))
+        return self.alpha_undraped + (self.alpha - self.alpha_undraped) * kind
+
+    def forward(
+        self, logits: torch.Tensor, target: torch.Tensor, draped: torch.Tensor | None = None
+    ) -> torch.Tensor:
         if logits.shape != target.shape:
             raise ValueError(
                 f"logits {tuple(logits.shape)} and target {tuple(target.shape)} differ"
             )
-        focal = focal_loss(logits, target, self.alpha, self.gamma)
+        alpha = self.pixel_alpha(target, draped)
+        focal = focal_loss(logits, target, alpha, self.gamma)
         dice = dice_loss(logits, target, self.per_image, self.eps)
         return self.w_focal * focal + self.w_dice * dice

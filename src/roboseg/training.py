@@ -251,7 +251,7 @@ class SegmentationModule(pl.LightningModule):
             batch = self.on_after_batch_transfer(batch, 0)
         logits = self(batch["input"]).float()  # the loss in float32, also under bf16-mixed
         target = batch["target"]
-        loss = self.loss_fn(logits, target)
+        loss = self.loss_fn(logits, target, batch.get("draped"))
         probs, n = torch.sigmoid(logits.detach()), target.shape[0]
         if stage == "train":  # per-step value (streaming data may have no epochs) + epoch value
             iou(probs, target.int())

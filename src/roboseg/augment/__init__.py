@@ -8,7 +8,8 @@ random parameters are drawn by ``sample(...)`` from a ``torch.Generator`` and us
 
 Batches are dicts: ``image`` float ``[B,3,H,W]`` in [0, 1], ``mask`` float ``[B,1,H,W]`` in {0, 1},
 ``prior`` float ``[B,1,H,W]`` (zeros when absent), ``visible`` bool ``[B]`` (robot entirely inside
-the frame), ``index`` long ``[B]``.
+the frame), ``index`` long ``[B]``, optionally ``draped`` (bool ``[B]`` per frame, made a float
+``[B,1,H,W]`` map of the kind of label per pixel before the steps).
 """
 
 from roboseg.augment.cmm import CutMixMerge

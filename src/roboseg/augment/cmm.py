@@ -8,7 +8,9 @@ is in its own frame, so it stays physically placed (cut by the border only where
 The in-context prior is merged like the label, ``P_i ← P'_i ∨ P'_j``: the prior is a silhouette
 at a pose estimate of the robots in view, and after the merge robot ``j`` is in view of image
 ``i`` at exactly the pixels of its own frame. A zero prior stays zero when merged with a zero
-prior. ``visible`` becomes ``visible_i ∧ visible_j``; ``index`` keeps the host ``i``.
+prior. ``visible`` becomes ``visible_i ∧ visible_j``; ``index`` keeps the host ``i``. The kind
+of label per pixel (``draped`` ``[B,1,H,W]``) is pasted like the image: the guest's robot pixels
+keep the guest frame's kind.
 The whole batch is merged with probability ``p`` (``p = 0`` disables it).
 """
 
@@ -62,6 +64,8 @@ class CutMixMerge(nn.Module):
             out["prior"] = union(batch["prior"], batch["prior"][perm])
         if "visible" in batch:
             out["visible"] = batch["visible"] & batch["visible"][perm]
+        if "draped" in batch and batch["draped"].dim() == 4:
+            out["draped"] = merge_images(batch["draped"], batch["draped"][perm], guest_mask)
         return out
 
     def forward(self, batch: Batch, generator: torch.Generator) -> Batch:

@@ -18,7 +18,10 @@ from torch import nn
 Batch = dict[str, torch.Tensor]
 
 #: Spatial entries of a batch and how each is resampled.
-SPATIAL_MODES: dict[str, str] = {"image": "bilinear", "mask": "nearest", "prior": "nearest"}
+#: ``draped`` is the per-pixel kind of label (1: the pixel's frame is draped), see
+#: :func:`roboseg.augment.pipeline.draped_map`.
+SPATIAL_MODES: dict[str, str] = {"image": "bilinear", "mask": "nearest", "prior": "nearest",
+                                 "draped": "nearest"}
 
 
 def _uniform(

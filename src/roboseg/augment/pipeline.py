@@ -92,6 +92,8 @@ class AugmentationPipeline(nn.Module):
         out.setdefault("prior", torch.zeros_like(batch["mask"]))
         out.setdefault("visible", torch.ones(batch["image"].shape[0], dtype=torch.bool,
                                              device=batch["image"].device))
+        if "draped" in out:
+            out["draped"] = draped_map(out["draped"], batch["image"].shape[-2:])
         strength = self.strength()
         for step in (self.crop, self.flip, self.affine, self.cmm, self.photometric):
             if step is None:
@@ -103,6 +105,18 @@ class AugmentationPipeline(nn.Module):
                     continue
             out = step(out, gen)
         return out
+
+
+def draped_map(draped: torch.Tensor, size: Sequence[int]) -> torch.Tensor:
+    """The kind of label per pixel, float ``[B,1,H,W]`` (1: draped frame), from per-sample
+    flags ``[B]`` (a map passes unchanged): the geometric steps move it with the mask and
+    cut-mix-merge pastes it with the robot, so every pixel keeps the kind of its frame."""
+    if draped.dim() == 4:
+        return draped
+    if draped.dim() != 1:
+        raise ValueError(f"draped must be [B] flags or a [B,1,H,W] map, got {tuple(draped.shape)}")
+    h, w = int(size[0]), int(size[1])
+    return draped.float().view(-1, 1, 1, 1).expand(-1, 1, h, w).contiguous()
 
 
 def to_model_input(
