@@ -1,4 +1,4 @@
-"""IoU, Table S4 formatting and the qualitative figure."""
+"""IoU, errors by distance to the outline, Table S4 formatting and the qualitative figure."""
 
 from __future__ import annotations
 
@@ -7,8 +7,10 @@ import pytest
 
 from roboseg.evaluation import (
     TableRow,
+    band_labels,
     binary_iou,
     difference_image,
+    error_bands,
     qualitative_figure,
     table_csv,
     table_markdown,
@@ -66,3 +68,27 @@ def test_qualitative_figure_png(tmp_path):
     gts = [rng.random((40, 64)) > 0.5 for _ in range(2)]
     path = qualitative_figure(imgs, gts, gts[::-1], tmp_path / "fig.png", row_titles=["x", "y"])
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_error_bands_hand_computed():
+    target = np.zeros((40, 40), bool)
+    target[10:20, 10:20] = True  # 100 robot pixels
+    pred = np.zeros_like(target)
+    pred[10:20, 11:21] = True  # one pixel to the right
+    pred[10:12, 32:34] = True  # a blob 13 px right of the robot
+    misses, false_pos = error_bands(pred, target)
+    # the left column is missed, each pixel next to the background
+    np.testing.assert_array_equal(misses, [10, 0, 0, 0])
+    # the column right of the robot touches it; the blob's pixels are 13-14 px away
+    np.testing.assert_array_equal(false_pos, [10, 0, 0, 4])
+    thick = np.zeros_like(target)
+    thick[14:16, 14:16] = True  # only the robot's core: misses 1-4 px inside its outline
+    misses, false_pos = error_bands(thick, target)
+    assert misses.sum() == 96 and false_pos.sum() == 0
+    assert misses[0] == 36 and misses[1] == 28 + 20 and misses[2] == 12
+    assert band_labels() == ["≤1.5 px", "1.5-3.5 px", "3.5-6 px", ">6 px"]
+    # no robot in the frame: every false positive is far
+    _, far = error_bands(pred, np.zeros_like(target))
+    np.testing.assert_array_equal(far, [0, 0, 0, pred.sum()])
+    with pytest.raises(ValueError, match="shapes differ"):
+        error_bands(pred, target[:5])

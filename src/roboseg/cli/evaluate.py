@@ -1,7 +1,8 @@
 """``roboseg-eval``: IoU of ONNX models and checkpoints on an annotated test split (``eval.yaml``).
 
 ``roboseg-eval 'models=[A.onnx,B.ckpt]' data.root=DIR out=OUT`` writes ``OUT/iou_table.md``,
-``OUT/iou_table.csv``, ``OUT/per_frame_iou.csv`` and ``OUT/qualitative_*.png`` and prints the table.
+``OUT/iou_table.csv``, ``OUT/per_frame_iou.csv``, ``OUT/error_bands.md`` (missed and false-positive
+pixels by distance to the true outline) and ``OUT/qualitative_*.png`` and prints the table.
 """
 
 from __future__ import annotations
@@ -80,7 +81,7 @@ def run(cfg: DictConfig) -> list[TableRow]:
     for r in rows:
         prior = "" if r.prior == "-" else f" ({r.prior} prior)"
         print(f"{r.model}{prior}: IoU {r.iou_mean:.4f} ± {r.iou_std:.4f} over {len(r.ious)} frames")
-    print(f"written to {cfg.out}/ (iou_table.md, iou_table.csv, per_frame_iou.csv, figures)")
+    print(f"written to {cfg.out}/ (iou_table.md, iou_table.csv, per_frame_iou.csv, error_bands.md, figures)")
     return rows
 
 

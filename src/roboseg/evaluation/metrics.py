@@ -1,4 +1,5 @@
-"""IoU per frame, the paper's Table S4 (as Markdown and CSV) and the qualitative figure."""
+"""IoU per frame, the paper's Table S4 (as Markdown and CSV), the errors by their distance to
+the true outline, and the qualitative figure."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 #: Table S4's columns, in the paper's order (plus the prior used for 4-channel models).
@@ -36,6 +38,63 @@ def binary_iou(pred: np.ndarray, target: np.ndarray) -> float:
     if union == 0:
         return 1.0
     return float(np.logical_and(pred, target).sum() / union)
+
+
+#: Upper bounds (px, exclusive of the band before) of :func:`error_bands`' distance bands.
+ERROR_BANDS_PX: tuple[float, ...] = (1.5, 3.5, 6.0, math.inf)
+
+
+def band_labels(bands: Sequence[float] = ERROR_BANDS_PX) -> list[str]:
+    """Column names of the distance bands, e.g. ``≤1.5 px``, ``1.5-3.5 px``, ``>6 px``."""
+    labels, lo = [], 0.0
+    for hi in bands:
+        labels.append(f">{lo:g} px" if math.isinf(hi) else
+                      f"≤{hi:g} px" if lo == 0 else f"{lo:g}-{hi:g} px")
+        lo = hi
+    return labels
+
+
+def error_bands(
+    pred: np.ndarray, target: np.ndarray, bands: Sequence[float] = ERROR_BANDS_PX
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel counts ``(misses, false_positives)``, each ``[len(bands)]``, of a boolean
+    prediction against a boolean target, by the pixel's Euclidean distance (px) to the true
+    outline: a missed robot pixel's to the nearest background pixel, a false positive's to the
+    nearest robot pixel (1 for a pixel next to the outline). Band ``k`` holds distances in
+    ``(bands[k-1], bands[k]]``. A false positive in a frame without robot pixels counts as
+    infinitely far. Tells an outline drawn a pixel off (near bands) from a wrong object (far)."""
+    pred = np.asarray(pred, bool)
+    target = np.asarray(target, bool)
+    if pred.shape != target.shape:
+        raise ValueError(f"mask shapes differ: {pred.shape} vs {target.shape}")
+    upper = np.asarray(bands, float)
+    inside = cv2.distanceTransform(target.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    if target.any():
+        outside = cv2.distanceTransform(
+            (~target).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    else:
+        outside = np.full(target.shape, np.inf, np.float32)
+
+    def count(distances: np.ndarray) -> np.ndarray:
+        band = np.searchsorted(upper, distances, side="left")  # first k with d <= bands[k]
+        return np.bincount(band, minlength=len(upper))[: len(upper)].astype(np.int64)
+
+    return count(inside[target & ~pred]), count(outside[pred & ~target])
+
+
+def error_bands_markdown(
+    rows: Sequence[tuple[str, np.ndarray, np.ndarray, int]],
+    bands: Sequence[float] = ERROR_BANDS_PX,
+) -> str:
+    """Rows ``(name, misses, false_positives, true_pixels)`` (counts summed over frames) as a
+    Markdown table of fractions of the true robot area."""
+    labels = band_labels(bands)
+    head = ["model"] + [f"missed {b}" for b in labels] + [f"false positive {b}" for b in labels]
+    lines = ["| " + " | ".join(head) + " |", "|" + "|".join("---" for _ in head) + "|"]
+    for name, misses, false_pos, area in rows:
+        frac = [f"{v / area:.3f}" if area else "–" for v in (*misses, *false_pos)]
+        lines.append("| " + " | ".join([name, *frac]) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def encoder_label(name: str) -> str:

@@ -28,7 +28,13 @@ import numpy as np
 import torch
 
 from roboseg.errors import DatasetError, ModelFileError, RecordingError
-from roboseg.evaluation.metrics import TableRow, binary_iou, qualitative_figure
+from roboseg.evaluation.metrics import (
+    ERROR_BANDS_PX,
+    TableRow,
+    binary_iou,
+    error_bands,
+    qualitative_figure,
+)
 from roboseg.recording.topics import ROBOT_MASK, ROBOT_MASK_GT
 from roboseg.segmentor import SegmentorMeta, _sigmoid, preprocess
 
@@ -269,6 +275,10 @@ class Run:
     prior: str
     ious: list[float] = field(default_factory=list)
     figure: list[tuple[np.ndarray, np.ndarray, np.ndarray, str]] = field(default_factory=list)
+    # error pixels by distance to the true outline (metrics.error_bands), summed over frames
+    misses: np.ndarray = field(default_factory=lambda: np.zeros(len(ERROR_BANDS_PX), np.int64))
+    false_pos: np.ndarray = field(default_factory=lambda: np.zeros(len(ERROR_BANDS_PX), np.int64))
+    true_pixels: int = 0
 
 
 def figure_indices(figure_frames: Sequence[int] | int | None, n: int) -> set[int]:
@@ -297,7 +307,9 @@ def evaluate_models(
     phase: str = "all",
 ) -> list[TableRow]:
     """Evaluate ``models`` on ``split`` of the annotated dataset ``root``; write ``out/``
-    ``iou_table.md``, ``iou_table.csv``, ``per_frame_iou.csv`` and ``qualitative_<row>.png``.
+    ``iou_table.md``, ``iou_table.csv``, ``per_frame_iou.csv``, ``error_bands.md`` (missed and
+    false-positive pixels by distance to the true outline, as fractions of the true robot area)
+    and ``qualitative_<row>.png``.
 
     ``source_size`` ``(H, W)``: image size the models were trained from (for the aspect check).
     ``phase``: ``all`` frames, or only the ``draped`` / ``undraped`` ones (see :func:`iter_frames`).
@@ -340,6 +352,10 @@ def evaluate_models(
             pred = predict_probs(run.model, frame.image, pr) > run.model.meta.threshold
             iou = binary_iou(pred, frame.target)
             run.ious.append(iou)
+            misses, false_pos = error_bands(pred, frame.target)
+            run.misses += misses
+            run.false_pos += false_pos
+            run.true_pixels += int(np.count_nonzero(frame.target))
             per_frame.append((run.name, run.prior, frame.file, frame.stamp_ns, iou))
             if i in shown:
                 run.figure.append((frame.image, frame.target, pred, f"{frame.file} @{i}"))
@@ -416,11 +432,14 @@ def write_outputs(
     per_frame: Sequence[tuple[str, str, str, int, float]],
 ) -> None:
     """The tables, the per-frame CSV and one qualitative figure per row, written under ``out``."""
-    from roboseg.evaluation.metrics import table_csv, table_markdown
+    from roboseg.evaluation.metrics import error_bands_markdown, table_csv, table_markdown
 
     out.mkdir(parents=True, exist_ok=True)
     _write_text(out / "iou_table.md", table_markdown(rows))
     _write_text(out / "iou_table.csv", table_csv(rows))
+    _write_text(out / "error_bands.md", error_bands_markdown([
+        (r.name if r.prior == "-" else f"{r.name} ({r.prior} prior)", r.misses, r.false_pos,
+         r.true_pixels) for r in runs]))
     lines = [("model", "prior", "file", "stamp", "iou")]
     lines += [
         (m, p, f, str(s), "nan" if math.isnan(v) else f"{v:.6f}") for m, p, f, s, v in per_frame
