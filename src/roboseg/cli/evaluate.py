@@ -81,7 +81,8 @@ def run(cfg: DictConfig) -> list[TableRow]:
     for r in rows:
         prior = "" if r.prior == "-" else f" ({r.prior} prior)"
         print(f"{r.model}{prior}: IoU {r.iou_mean:.4f} ± {r.iou_std:.4f} over {len(r.ious)} frames")
-    print(f"written to {cfg.out}/ (iou_table.md, iou_table.csv, per_frame_iou.csv, error_bands.md, figures)")
+    print(f"written to {cfg.out}/ (iou_table.md, iou_table.csv, per_frame_iou.csv, "
+          "error_bands.md, figures)")
     return rows
 
 
