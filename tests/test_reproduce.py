@@ -51,6 +51,7 @@ def tiny_overrides(tmp: Path) -> list[str]:
         "frames=12", "width=96", "height=64", "steps=1", "lab.steps=1",
         "operating_room.width=null", "operating_room.height=null",
         "lab.recordings={train:1,val:1}", "operating_room.recordings={train:1,val:1,test:1}",
+        "lab.in_training=true",  # the merge of lab and operating-room frames is checked below
         "register.configs=3", f"register.overrides={_quoted(REGISTER)}",
         f"train_overrides={_quoted(SMALL_TRAIN)}", f"lab.overrides={_quoted(SMALL_TRAIN)}",
         'annotate.overrides=["min_joint_speed=0.0"]', "track.frames=6", MODELS,
@@ -240,6 +241,15 @@ def test_plan_study_gives_every_recording_its_own_seed() -> None:
     cfg.lab.recordings = {"train": 101, "val": 1}  # lab_train_100 lands on lab_val_00's seed
     with pytest.raises(SystemExit, match="lab_train_100 and lab_val_00 would share seed 11000"):
         plan_study(cfg)
+    cfg.lab.recordings = {"train": 2, "val": 1}
+    cfg.operating_room.recordings = {"train": 12, "val": 1, "test": 1}
+    _, study = plan_study(cfg)
+    seeds = {r.stem: r.seed for r in study}
+    assert [seeds[f"or_train_{i:02d}"] for i in (0, 1, 9, 10, 11)] == [0, 100, 900, 50, 150]
+    assert seeds["or_val_00"] == 1000 and seeds["or_test_00"] == 2000
+    cfg.operating_room.recordings = {"train": 21, "val": 1, "test": 1}  # 21st: seed 100 again
+    with pytest.raises(SystemExit, match="or_train_01 and or_train_20 would share seed 100"):
+        plan_study(cfg)
 
 
 def test_walkers_repeat_study_recordings_with_people_walking(tmp_path: Path) -> None:
@@ -263,8 +273,8 @@ def test_walkers_repeat_study_recordings_with_people_walking(tmp_path: Path) -> 
     assert reg.parallel and "phase=undraped" in reg.argv
     assert "walkers_quality" in plan
     assert not any("or_train_01_walkers" in n for n in plan if n.startswith("annotate_"))
-    cfg.walkers = {"recordings": ["or_train_09"], "people": 2}
-    with pytest.raises(SystemExit, match="walkers.recordings: or_train_09 is not an"):
+    cfg.walkers = {"recordings": ["or_train_99"], "people": 2}
+    with pytest.raises(SystemExit, match="walkers.recordings: or_train_99 is not an"):
         plan_walkers(cfg, study)
     cfg.walkers = {"recordings": [], "people": 0}
     assert plan_walkers(cfg, study) == []
@@ -334,7 +344,9 @@ def test_undraped_segmentor_chooses_the_bootstrap_or_none(
         assert sum("start from scratch" in r.getMessage() for r in caplog.records) == 1
         caplog.clear()
         assert model_init(cfg, warn=False) == "scratch" and not caplog.records
-    # the models also learn from the lab's recordings, when there is a lab stage
+    # the models learn from the lab's recordings only if asked and there is a lab stage
+    assert not lab_in_training(cfg)  # the default: the operating room's sessions alone
+    cfg.lab.in_training = True
     assert lab_in_training(cfg) == (segmentor == "model")
     cfg.undraped.segmentor = "prompt"
     with pytest.raises(SystemExit, match="undraped.segmentor=prompt: not one of model, motion"):

@@ -147,6 +147,12 @@ def robots_of(rec: Recording) -> list[str]:
     return [f"robot_{i}" for i in range(rec.robots)]
 
 
+def study_seed_offset(index: int) -> int:
+    """Seed offset of a split's ``index``-th operating-room recording: stride 100 (the splits
+    lie 1000 apart), then the half-way points (50, 150, ...) for the 11th to 20th."""
+    return 100 * (index % 10) + 50 * (index // 10)
+
+
 def plan_study(cfg: DictConfig) -> tuple[list[Recording], list[Recording]]:
     """The lab and operating-room recordings of ``cfg`` (names, splits, seeds, robots)."""
     seed = int(cfg.seed)
@@ -157,7 +163,7 @@ def plan_study(cfg: DictConfig) -> tuple[list[Recording], list[Recording]]:
     ]
     study = [
         Recording(
-            f"or_{split}_{i:02d}", "or", split, seed + 100 * i + hash_split(split),
+            f"or_{split}_{i:02d}", "or", split, seed + study_seed_offset(i) + hash_split(split),
             int(cfg.operating_room.test_robots) if split == "test" else 1,
         )
         for split, count in cfg.operating_room.recordings.items() for i in range(int(count))
