@@ -323,6 +323,9 @@ def test_undraped_segmentor_chooses_the_bootstrap_or_none(
     assert argv[-1] == "self_training.rounds=1"
     draped = plan["register_draped_sdr_robot_0"].argv
     assert f"model={layout.onnx(cfg.localise.cpu.sdr)}" in draped
+    # the stereo disparity term holds the draped fits' distance; the undraped ones go without
+    assert draped[-1] == "sdr.disparity_weight=1.0"
+    assert not any(a.startswith("sdr.disparity_weight") for a in argv)
     # the operating-room recordings are sessions of one site; lab recordings random rooms
     assert "site=1" in plan["simulate_or_val_00"].argv
     # the operating room at its own size (960×540), the lab at every recording's (480×270)

@@ -525,7 +525,8 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
                 f"register_draped_{method}_{robot}",
                 _register_argv(cfg, layout.test, layout.recording(layout.test),
                                layout.onnx(str(chosen[method])), method, "draped", robot,
-                               layout.draped_pose(method, robot).parent),
+                               layout.draped_pose(method, robot).parent,
+                               cfg.register.get("draped_overrides", [])),
                 tolerant=True,
                 parallel=True,
             ))

@@ -5,7 +5,9 @@ follows through the fixed ``T_right_left``. :func:`cso` initialises it by a swar
 cameras, :func:`sdr` / :func:`sdr_multistart` refine it by stereo differentiable rendering
 (AdamW, then an L-BFGS polish for the last fraction of a millimetre; optionally letting each
 segmentation's boundary shift by a fitted offset, so masks that are uniformly too fat or too
-thin do not bias the depth: ``SDRConfig.boundary_offset``);
+thin do not bias the depth: ``SDRConfig.boundary_offset``; and holding the distance to the
+masks' stereo centroid disparity, which a blurry mask's outline cannot shift:
+``SDRConfig.disparity_weight``);
 :func:`sdr_with_prior` alternates a 4-channel segmentation (prior = render at the estimate) with
 SDR; :func:`register` drives it all on a recording. When the masks show several robots, each
 is fitted on the pixels near its own estimate, and fitted again without another robot's pixels

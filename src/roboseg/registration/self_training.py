@@ -497,8 +497,13 @@ def refine_registration(
     (``{frame index: [D]}``) of the frames ``masks`` covers (those whose mask covers less than
     ``cfg.min_mask_fraction`` of an image left out), SDR at ``cfg.width`` from
     ``previous.T_cam_base`` with every link (no swarm); trimmed near the estimate as
-    :func:`~roboseg.registration.register.register` does when the masks may hold other robots."""
+    :func:`~roboseg.registration.register.register` does when the masks may hold other robots.
+    Without the stereo disparity term (``sdr.disparity_weight``): a round's masks are drawn
+    from the estimate's own silhouettes, so their disparity echoes the estimate instead of
+    measuring it (with the term, GrabCut rounds walked away from the truth: or_train_01 of
+    ``make reproduce`` 59 → 31 → 63 → 74 mm instead of converging)."""
     t0 = time.perf_counter()
+    cfg = replace(cfg, sdr=replace(cfg.sdr, disparity_weight=0.0))
     indices = [i for i in masks.frames if i in joints]
     q_all = np.stack([joints[i] for i in indices])
     scale = (robot_model.upper - robot_model.lower).double().numpy()
