@@ -600,3 +600,41 @@ def test_sdr_prior_that_echoes_a_wrong_prior_is_a_poor_fit(
         assert echo and not reg.converged, reg.warnings
     else:
         assert dt < 10.0 and not echo and reg.converged, reg.warnings
+
+
+@pytest.mark.parametrize("term_fails", [True, False])
+def test_a_fit_with_the_disparity_term_that_fails_is_done_again_without_it(
+    recording: dict, monkeypatch: pytest.MonkeyPatch, term_fails: bool
+) -> None:
+    """Masks whose stereo disparity is wrong drag the fit with the term away (here: stood in for
+    by starting that fit 0.4 m off and stopping it after one iteration). A fit with the term
+    that fails the IoU check is redone with the plain cost and the better one kept; one that
+    passes is kept without a second fit."""
+    # the package's ``register`` is the function; the module is fetched by its name
+    register_module = importlib.import_module("roboseg.registration.register")
+    real = register_module.sdr_multistart
+    weights: list[float] = []
+
+    def multistart(verts, faces, views, masks, starts, config, **kw):
+        weights.append(config.disparity_weight)
+        if term_fails and config.disparity_weight > 0:
+            off = np.array(starts[0], dtype=np.float64, copy=True)
+            off[:3, 3] += np.array([0.4, 0.0, 0.0])
+            return real(verts, faces, views, masks, [off], replace(config, max_iterations=1), **kw)
+        return real(verts, faces, views, masks, starts, config, **kw)
+
+    monkeypatch.setattr(register_module, "sdr_multistart", multistart)
+    gt = recording["gt"]
+    cfg = replace(FAST, coarse_width=None, sdr=replace(FAST.sdr, disparity_weight=1.0))
+    reg = register(
+        recording["path"], recording["robot"], masks=lambda f: gt[f.stamp_ns], config=cfg
+    )
+    dt, _ = _errors(reg.T_cam_base, recording["T_true"])
+    assert reg.converged, reg.warnings
+    assert dt < 5.0, dt
+    redone = [w for w in reg.warnings if "fitted again without it" in w]
+    if term_fails:
+        assert weights == [1.0, 0.0]
+        assert len(redone) == 1 and "disparity term ended at mean IoU" in redone[0]
+    else:
+        assert weights == [1.0] and not redone

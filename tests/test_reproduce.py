@@ -323,7 +323,8 @@ def test_undraped_segmentor_chooses_the_bootstrap_or_none(
     assert argv[-1] == "self_training.rounds=1"
     draped = plan["register_draped_sdr_robot_0"].argv
     assert f"model={layout.onnx(cfg.localise.cpu.sdr)}" in draped
-    # the stereo disparity term holds the draped fits' distance; the undraped ones go without
+    # the stereo disparity term holds the draped fits' distance (the undraped ones' is set in
+    # undraped.overrides, replaced by this test's)
     assert draped[-1] == "sdr.disparity_weight=1.0"
     assert not any(a.startswith("sdr.disparity_weight") for a in argv)
     # the operating-room recordings are sessions of one site; lab recordings random rooms

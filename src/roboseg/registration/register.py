@@ -325,7 +325,9 @@ class _Fitter:
     """Swarm → multi-start SDR → refinement of one robot (joints ``q`` [C, D] of the used
     configurations) on given masks per view ``[C, H, W]``. With ``margins`` (px per view; several
     robots in the masks) the estimate is refined once more on the mask pixels within that
-    distance of its own silhouette, and those masks are returned instead of the given ones."""
+    distance of its own silhouette, and those masks are returned instead of the given ones.
+    A fit with the stereo disparity term (``sdr.disparity_weight``) that fails the fit check is
+    done again without it, and the better of the two kept (noted in :attr:`notes`)."""
 
     def __init__(
         self,
@@ -339,6 +341,7 @@ class _Fitter:
         self.cfg, self.views, self.coarse, self.fine, self.q = cfg, views, coarse, fine, q
         self.verts = fine.posed_vertices(q)
         self.margins = margins
+        self.notes: list[str] = []  # what the fits did besides fitting, for the warnings
 
     def silhouettes(
         self, T_cam_base: np.ndarray, q: torch.Tensor | None = None
@@ -365,22 +368,22 @@ class _Fitter:
         )
         seconds["cso"] = seconds.get("cso", 0.0) + time.perf_counter() - t1
         t1 = time.perf_counter()
-        sdr_views = views_for_width(roi_views, cfg.width)
         starts = [c.T_cam_base for c in found_cso.candidates]
-        coarse_views = views_for_width(roi_views, cfg.coarse_width or cfg.width)
-        res = sdr_multistart(
-            self.verts,
-            faces,
-            coarse_views,
-            roi_masks,
-            starts,
-            cfg.sdr,
-            screen_iterations=cfg.screen_iterations,
-        )
-        if coarse_views[0].width != sdr_views[0].width:
-            refined = sdr(self.verts, faces, sdr_views, roi_masks, res.T_cam_base, cfg.sdr)
-            if refined.reason != "diverged":
-                res = refined
+        res = self._sdr(roi_views, roi_masks, starts, cfg.sdr)
+        if cfg.sdr.disparity_weight > 0 and not _passes(res, cfg.min_iou):
+            # the term holds the distance of blurry masks, but masks whose two views disagree
+            # (a robot segmented in one image only, clutter on one side) give it a wrong
+            # disparity to hold: the plain cost decides then
+            plain = self._sdr(roi_views, roi_masks, starts, replace(cfg.sdr, disparity_weight=0.0))
+            if _passes(plain, cfg.min_iou) or (
+                plain.reason != "diverged" and _mean_iou(plain) > _mean_iou(res)
+            ):
+                self.notes.append(
+                    f"the fit with the stereo disparity term ended at mean IoU "
+                    f"{_mean_iou(res):.3f} ({res.reason}); fitted again without it: "
+                    f"{_mean_iou(plain):.3f}"
+                )
+                res = plain
         if self.margins is not None and res.reason != "diverged":
             res, masks = refit_on_own_pixels(
                 self.verts, faces, self.views, masks, res, self.silhouettes(res.T_cam_base),
@@ -388,6 +391,43 @@ class _Fitter:
             )
         seconds["sdr"] = seconds.get("sdr", 0.0) + time.perf_counter() - t1
         return res, masks, found_cso
+
+    def _sdr(
+        self,
+        roi_views: list[View],
+        roi_masks: list[np.ndarray],
+        starts: list[np.ndarray],
+        sdr_cfg: SDRConfig,
+    ) -> RegistrationResult:
+        """Multi-start SDR at ``coarse_width`` from ``starts`` (T_cam_base 4×4), then refined at
+        ``width`` when the two differ."""
+        cfg, faces = self.cfg, self.fine.faces
+        coarse_views = views_for_width(roi_views, cfg.coarse_width or cfg.width)
+        sdr_views = views_for_width(roi_views, cfg.width)
+        res = sdr_multistart(
+            self.verts,
+            faces,
+            coarse_views,
+            roi_masks,
+            starts,
+            sdr_cfg,
+            screen_iterations=cfg.screen_iterations,
+        )
+        if coarse_views[0].width != sdr_views[0].width:
+            refined = sdr(self.verts, faces, sdr_views, roi_masks, res.T_cam_base, sdr_cfg)
+            if refined.reason != "diverged":
+                res = refined
+        return res
+
+
+def _mean_iou(res: RegistrationResult) -> float:
+    """Mean over views of the residual IoU of ``res``."""
+    return float(np.mean(list(res.per_view_iou.values())))
+
+
+def _passes(res: RegistrationResult, min_iou: float) -> bool:
+    """The fit check of :func:`register`: not diverged, mean residual IoU ≥ ``min_iou``."""
+    return res.reason != "diverged" and _mean_iou(res) >= min_iou
 
 
 def pooled_iou(silhouettes: list[np.ndarray], masks: list[np.ndarray]) -> float:
@@ -584,6 +624,7 @@ def register(
                     )
             else:
                 warnings.append(f"poor fit: no mask pixels left for {robot} besides {name}'s")
+    warnings.extend(fit.notes)
     res, prior = res_sdr, None
     if cfg.method == "sdr_prior":
         t1 = time.perf_counter()
@@ -619,7 +660,7 @@ def register(
     seconds["total"] = time.perf_counter() - t0
     if res.reason == "diverged":
         warnings.append("SDR diverged (robot left the images, non-finite cost or IoU collapse)")
-    mean_iou = float(np.mean(list(res.per_view_iou.values())))
+    mean_iou = _mean_iou(res)
     if mean_iou < cfg.min_iou:
         warnings.append(f"poor fit: mean IoU {mean_iou:.3f} < {cfg.min_iou}")
     for c, row in zip(used, res.per_frame_iou, strict=False):
