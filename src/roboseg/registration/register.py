@@ -354,7 +354,7 @@ class _Fitter:
     def __call__(
         self, masks: list[np.ndarray], seconds: dict[str, float]
     ) -> tuple[RegistrationResult, list[np.ndarray], Any]:
-        cfg, faces = self.cfg, self.fine.faces
+        cfg = self.cfg
         t1 = time.perf_counter()
         roi_views, roi_masks = crop_to_masks(self.views, masks, cfg.roi_margin)
         log.info("region of interest: %s", [(v.name, v.width, v.height) for v in roi_views])
@@ -369,12 +369,13 @@ class _Fitter:
         seconds["cso"] = seconds.get("cso", 0.0) + time.perf_counter() - t1
         t1 = time.perf_counter()
         starts = [c.T_cam_base for c in found_cso.candidates]
-        res = self._sdr(roi_views, roi_masks, starts, cfg.sdr)
+        res, fitted = self._fit(roi_views, roi_masks, starts, masks, cfg.sdr)
         if cfg.sdr.disparity_weight > 0 and not _passes(res, cfg.min_iou):
             # the term holds the distance of blurry masks, but masks whose two views disagree
             # (a robot segmented in one image only, clutter on one side) give it a wrong
             # disparity to hold: the plain cost decides then
-            plain = self._sdr(roi_views, roi_masks, starts, replace(cfg.sdr, disparity_weight=0.0))
+            no_term = replace(cfg.sdr, disparity_weight=0.0)
+            plain, plain_masks = self._fit(roi_views, roi_masks, starts, masks, no_term)
             if _passes(plain, cfg.min_iou) or (
                 plain.reason != "diverged" and _mean_iou(plain) > _mean_iou(res)
             ):
@@ -383,14 +384,28 @@ class _Fitter:
                     f"{_mean_iou(res):.3f} ({res.reason}); fitted again without it: "
                     f"{_mean_iou(plain):.3f}"
                 )
-                res = plain
-        if self.margins is not None and res.reason != "diverged":
-            res, masks = refit_on_own_pixels(
-                self.verts, faces, self.views, masks, res, self.silhouettes(res.T_cam_base),
-                self.margins, cfg,
-            )
+                res, fitted = plain, plain_masks
         seconds["sdr"] = seconds.get("sdr", 0.0) + time.perf_counter() - t1
-        return res, masks, found_cso
+        return res, fitted, found_cso
+
+    def _fit(
+        self,
+        roi_views: list[View],
+        roi_masks: list[np.ndarray],
+        starts: list[np.ndarray],
+        masks: list[np.ndarray],
+        sdr_cfg: SDRConfig,
+    ) -> tuple[RegistrationResult, list[np.ndarray]]:
+        """SDR from ``starts`` with ``sdr_cfg`` (:meth:`_sdr`), refitted on the estimate's own
+        pixels when other robots are in the masks; the result and the masks it was fitted on
+        (full size, per view ``[C, H, W]``) — what :func:`register`'s fit check judges."""
+        res = self._sdr(roi_views, roi_masks, starts, sdr_cfg)
+        if self.margins is not None and res.reason != "diverged":
+            return refit_on_own_pixels(
+                self.verts, self.fine.faces, self.views, masks, res,
+                self.silhouettes(res.T_cam_base), self.margins, replace(self.cfg, sdr=sdr_cfg),
+            )
+        return res, masks
 
     def _sdr(
         self,
