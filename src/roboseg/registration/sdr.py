@@ -135,6 +135,8 @@ class StereoObjective:
         boundary_offset: largest boundary shift of a segmentation (px), 0 for none (see
             :class:`SDRConfig`); the offsets in use, ``offsets`` ``[C, n_views]`` (px), are set
             by :meth:`update_offsets` (zero until then).
+        disparity_weight: weight (cost per px²) of the stereo centroid-disparity term, 0 for
+            none; kept only with exactly two views (see :class:`SDRConfig`).
     """
 
     def __init__(
@@ -177,6 +179,20 @@ class StereoObjective:
             if bool(self.disparity_valid.any()):
                 delta = self.disparities(segs)[self.disparity_valid]
                 self.disparity_target = delta.mean()
+
+    @classmethod
+    def from_config(
+        cls,
+        vertices_base: torch.Tensor,
+        faces: torch.Tensor,
+        views: Sequence[View],
+        masks: Sequence[np.ndarray | torch.Tensor],
+        cfg: SDRConfig,
+    ) -> StereoObjective:
+        """The objective of ``cfg``'s cost: its loss, boundary offset and disparity weight."""
+        return cls(
+            vertices_base, faces, views, masks, cfg.loss, cfg.boundary_offset, cfg.disparity_weight
+        )
 
     def __call__(self, T_cam_base: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Cost (scalar, differentiable), IoU and rendered area (px), both ``[C, n_views]``."""
@@ -279,9 +295,7 @@ def sdr(
     Pass a prebuilt ``objective`` to reuse its distance transforms across restarts.
     """
     cfg = config or SDRConfig()
-    obj = objective or StereoObjective(
-        vertices_base, faces, views, masks, cfg.loss, cfg.boundary_offset, cfg.disparity_weight
-    )
+    obj = objective or StereoObjective.from_config(vertices_base, faces, views, masks, cfg)
     dtype = obj.vertices_base.dtype
     T0 = torch.as_tensor(T_cam_base_init, dtype=dtype)
     if T0.shape != (4, 4) or not bool(torch.isfinite(T0).all()):
@@ -447,9 +461,7 @@ def sdr_multistart(
     if keep < 1:
         raise ValueError(f"sdr_multistart keep must be >= 1, got {keep}")
     cfg = config or SDRConfig()
-    obj = StereoObjective(
-        vertices_base, faces, views, masks, cfg.loss, cfg.boundary_offset, cfg.disparity_weight
-    )
+    obj = StereoObjective.from_config(vertices_base, faces, views, masks, cfg)
     if screen_iterations is not None and screen_iterations < cfg.max_iterations:
         short = replace(cfg, max_iterations=max(1, screen_iterations), polish_iterations=0)
         screened = [sdr(vertices_base, faces, views, masks, T0, short, obj) for T0 in starts]
