@@ -160,6 +160,25 @@ def test_stages_side_by_side_overlap_and_count_once_in_wall_time(tmp_path: Path)
     assert stages.status("e")[1] == 0  # the other one still finished
 
 
+def test_stages_after_an_unfinished_one_are_redone(tmp_path: Path) -> None:
+    """Groups [a], [b, c] (side by side), [d], [e]: with b's marker gone, c (independent of b)
+    stays done while d and e, which may read b's output, lose their markers; with nothing
+    unfinished nothing is removed."""
+    from roboseg.reproduce import plan_groups
+    from roboseg.stages import Step
+
+    plan = [Step("a"), Step("b", parallel=True), Step("c", parallel=True), Step("d"), Step("e")]
+    groups = plan_groups(plan)
+    assert groups == [["a"], ["b", "c"], ["d"], ["e"]]
+    stages = Stages(tmp_path, total=5, runner="process")
+    for name in "abcde":
+        stages.marker(name).write_text("1.0 s\n")
+    assert stages.redo_after_pending(groups) == []
+    stages.marker("b").unlink()
+    assert stages.redo_after_pending(groups) == ["d", "e"]
+    assert [n for n in "abcde" if stages.marker(n).exists()] == ["a", "c"]
+
+
 def test_stages_forked_function(tmp_path: Path) -> None:
     stages = Stages(tmp_path, total=2, runner="fork")
     target = tmp_path / "written.txt"

@@ -55,6 +55,14 @@ def run_pipeline(cfg: DictConfig) -> Path:
     out = Path(cfg.out).resolve()
     total = sum(int(n) for n in cfg.simulate.recordings.values()) + 3 + len(cfg.evaluate.runs)
     stages = Stages(out, total, str(cfg.get("runner", "fork")))
+    simulations = [f"simulate_{split}_{i:02d}" for split, count in cfg.simulate.recordings.items()
+                   for i in range(int(count))]
+    evaluations = [f"evaluate_{name}" for name in cfg.evaluate.runs]
+    redone = stages.redo_after_pending(
+        [simulations, ["annotate"], ["train"], ["export"], evaluations]
+    )
+    if redone:
+        log.info("finished stages after an unfinished one are redone: %s", ", ".join(redone))
     if stages.runner == "fork" and not stages.marker(f"evaluate_{cfg.evaluate.headline}").exists():
         preimport()
     train_dir = out / "train"

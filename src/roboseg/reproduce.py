@@ -551,6 +551,17 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
     return steps
 
 
+def plan_groups(plan: Sequence[Step]) -> list[list[str]]:
+    """The plan's stage names in order, consecutive side-by-side stages in one group."""
+    groups: list[list[str]] = []
+    for i, step in enumerate(plan):
+        if step.parallel and i > 0 and plan[i - 1].parallel:
+            groups[-1].append(step.name)
+        else:
+            groups.append([step.name])
+    return groups
+
+
 def run_reproduce(cfg: DictConfig) -> Path:
     """Run (or resume) the whole study of ``cfg``; write the results page; return its path."""
     from roboseg.reproduce_report import write_page
@@ -562,6 +573,10 @@ def run_reproduce(cfg: DictConfig) -> Path:
                     plan_walkers(cfg, study))
     plan = build_plan(cfg, layout)
     stages = Stages(out, len(plan), str(cfg.runner))
+    redone = stages.redo_after_pending(plan_groups(plan))
+    if redone:
+        print(f"reproduce: {len(redone)} finished stages follow an unfinished one and are "
+              f"redone: {', '.join(redone)}", flush=True)
     pending = [s.name for s in plan if not stages.marker(s.name).exists()]
     if stages.runner == "fork" and pending:
         preimport()

@@ -87,8 +87,9 @@ class Stages:
 
     A finished stage leaves ``root/.<stage>.done`` (its seconds, exit status if not 0, start and
     end time); a stage whose marker exists is skipped, so an interrupted run resumes where it
-    stopped. ``runner="fork"`` runs a ``roboseg-*`` command in a forked child of this process
-    (after :func:`preimport`: the same command without the interpreter's start-up cost, ~3 s a
+    stopped (:meth:`redo_after_pending` clears the markers of what follows a stage to redo).
+    ``runner="fork"`` runs a ``roboseg-*`` command in a forked child of this process (after
+    :func:`preimport`: the same command without the interpreter's start-up cost, ~3 s a
     command); ``"process"`` runs every command as its own process.
     """
 
@@ -242,6 +243,23 @@ class Stages:
         note = f", exit status {code} (recorded, continuing)" if code else ""
         print(f"{self._prefix(index)} [{name}] finished in {seconds:.0f} s{note}", flush=True)
         return True
+
+    def redo_after_pending(self, groups: Sequence[Sequence[str]]) -> list[str]:
+        """Remove the markers of every stage in the groups after the first group holding an
+        unfinished stage, and return their names: a rerun redoes what follows a stage it runs
+        (its inputs may change). ``groups``: stage names in plan order, stages that run side by
+        side (independent of each other) sharing a group."""
+        removed: list[str] = []
+        pending = False
+        for group in groups:
+            if pending:
+                for name in group:
+                    if self.marker(name).exists():
+                        self.marker(name).unlink()
+                        removed.append(name)
+            elif any(not self.marker(name).exists() for name in group):
+                pending = True
+        return removed
 
     def run_side_by_side(self, steps: Sequence[Step], jobs: int) -> int:
         """Run independent command ``steps`` (see :attr:`Step.parallel`) ``jobs`` at a time,
