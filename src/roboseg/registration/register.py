@@ -377,12 +377,12 @@ class _Fitter:
             no_term = replace(cfg.sdr, disparity_weight=0.0)
             plain, plain_masks = self._fit(roi_views, roi_masks, starts, masks, no_term)
             if _passes(plain, cfg.min_iou) or (
-                plain.reason != "diverged" and _mean_iou(plain) > _mean_iou(res)
+                plain.reason != "diverged" and plain.mean_iou > res.mean_iou
             ):
                 self.notes.append(
                     f"the fit with the stereo disparity term ended at mean IoU "
-                    f"{_mean_iou(res):.3f} ({res.reason}); fitted again without it: "
-                    f"{_mean_iou(plain):.3f}"
+                    f"{res.mean_iou:.3f} ({res.reason}); fitted again without it: "
+                    f"{plain.mean_iou:.3f}"
                 )
                 res, fitted = plain, plain_masks
         seconds["sdr"] = seconds.get("sdr", 0.0) + time.perf_counter() - t1
@@ -435,14 +435,9 @@ class _Fitter:
         return res
 
 
-def _mean_iou(res: RegistrationResult) -> float:
-    """Mean over views of the residual IoU of ``res``."""
-    return float(np.mean(list(res.per_view_iou.values())))
-
-
 def _passes(res: RegistrationResult, min_iou: float) -> bool:
     """The fit check of :func:`register`: not diverged, mean residual IoU ≥ ``min_iou``."""
-    return res.reason != "diverged" and _mean_iou(res) >= min_iou
+    return res.reason != "diverged" and res.mean_iou >= min_iou
 
 
 def pooled_iou(silhouettes: list[np.ndarray], masks: list[np.ndarray]) -> float:
@@ -675,7 +670,7 @@ def register(
     seconds["total"] = time.perf_counter() - t0
     if res.reason == "diverged":
         warnings.append("SDR diverged (robot left the images, non-finite cost or IoU collapse)")
-    mean_iou = _mean_iou(res)
+    mean_iou = res.mean_iou
     if mean_iou < cfg.min_iou:
         warnings.append(f"poor fit: mean IoU {mean_iou:.3f} < {cfg.min_iou}")
     for c, row in zip(used, res.per_frame_iou, strict=False):

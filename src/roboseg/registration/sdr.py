@@ -122,6 +122,11 @@ class RegistrationResult:
     per_frame_iou: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 0)))
     history: tuple[float, ...] = field(repr=False, default=())
 
+    @property
+    def mean_iou(self) -> float:
+        """Mean over views of ``per_view_iou``: the figure registration's fit check judges."""
+        return float(np.mean(list(self.per_view_iou.values())))
+
 
 class StereoObjective:
     """The SDR cost and hard IoUs of a pose for fixed posed vertices, views and targets.

@@ -476,7 +476,7 @@ def _fit_warnings(res: RegistrationResult, used: list[Configuration], min_iou: f
     out = []
     if res.reason == "diverged":
         out.append("SDR diverged (robot left the images, non-finite cost or IoU collapse)")
-    mean_iou = float(np.mean(list(res.per_view_iou.values())))
+    mean_iou = res.mean_iou
     if mean_iou < min_iou:
         out.append(f"poor fit: mean IoU {mean_iou:.3f} < {min_iou}")
     for c, row in zip(used, res.per_frame_iou, strict=False):
@@ -617,10 +617,6 @@ class SelfTrainingResult:
         return path
 
 
-def _mean_iou(reg: Registration) -> float:
-    return float(np.mean(list(reg.result.per_view_iou.values())))
-
-
 def _entry(
     k: int, reg: Registration, source: dict[str, Any], prev: Registration | None
 ) -> dict[str, Any]:
@@ -633,7 +629,7 @@ def _entry(
         "masks": source,
         "method": reg.method,
         "residual_iou": {v: round(float(x), 4) for v, x in reg.result.per_view_iou.items()},
-        "mean_residual_iou": round(_mean_iou(reg), 4),
+        "mean_residual_iou": round(reg.result.mean_iou, 4),
         "converged": reg.converged,
         "configurations": [c.index for c in reg.configurations],
         "T_cam_base": [[round(float(x), 6) for x in row] for row in reg.T_cam_base],
@@ -657,7 +653,7 @@ def self_train(
     labels would teach the wrong silhouette): it is returned as it is, with a warning."""
     path = Path(recording)
     src = dict(source or {"kind": "model"})
-    history = [_mean_iou(first)]
+    history = [first.result.mean_iou]
     regs = [first]
     entries = [_entry(0, first, src, None)]
     log.info(
@@ -774,7 +770,7 @@ def self_train(
         states.append(None if module is None
                       else {n: t.detach().clone() for n, t in module.state_dict().items()})
         predicted.append(masks)
-        history.append(_mean_iou(reg))
+        history.append(reg.result.mean_iou)
         change = entry["pose_change"]
         log.info(
             "self-training round %d: masks from %s (IoU with the estimate's silhouettes "
