@@ -24,6 +24,11 @@ from roboseg.stages import Stages, preimport, script
 log = logging.getLogger("roboseg.pipeline")
 
 
+def session_names(split: str, count: int) -> list[str]:
+    """The recordings of one split: ``<split>_00``, ``<split>_01``, ..."""
+    return [f"{split}_{i:02d}" for i in range(count)]
+
+
 def prepare_data(cfg: DictConfig, stages: Stages, out: Path) -> Path:
     """Simulate the study of ``cfg.simulate`` into ``out/recordings`` and self-annotate it into
     ``out/annotated`` (stages that finished are skipped); return the annotated folder."""
@@ -32,8 +37,7 @@ def prepare_data(cfg: DictConfig, stages: Stages, out: Path) -> Path:
     site = sim.get("site")
     for split, count in sim.recordings.items():
         frames = sim.frames[split] if OmegaConf.is_dict(sim.frames) else sim.frames
-        for i in range(int(count)):
-            name = f"{split}_{i:02d}"
+        for i, name in enumerate(session_names(split, int(count))):
             robots = 2 if split == "test" else 1
             stages.run(
                 f"simulate_{name}",
@@ -55,8 +59,8 @@ def run_pipeline(cfg: DictConfig) -> Path:
     out = Path(cfg.out).resolve()
     total = sum(int(n) for n in cfg.simulate.recordings.values()) + 3 + len(cfg.evaluate.runs)
     stages = Stages(out, total, str(cfg.get("runner", "fork")))
-    simulations = [f"simulate_{split}_{i:02d}" for split, count in cfg.simulate.recordings.items()
-                   for i in range(int(count))]
+    simulations = [f"simulate_{name}" for split, count in cfg.simulate.recordings.items()
+                   for name in session_names(split, int(count))]
     evaluations = [f"evaluate_{name}" for name in cfg.evaluate.runs]
     redone = stages.redo_after_pending(
         [simulations, ["annotate"], ["train"], ["export"], evaluations]

@@ -573,7 +573,8 @@ def run_reproduce(cfg: DictConfig) -> Path:
                     plan_walkers(cfg, study))
     plan = build_plan(cfg, layout)
     stages = Stages(out, len(plan), str(cfg.runner))
-    redone = stages.redo_after_pending(plan_groups(plan))
+    groups = plan_groups(plan)
+    redone = stages.redo_after_pending(groups)
     if redone:
         print(f"reproduce: {len(redone)} finished stages follow an unfinished one and are "
               f"redone: {', '.join(redone)}", flush=True)
@@ -582,19 +583,15 @@ def run_reproduce(cfg: DictConfig) -> Path:
         preimport()
     print(f"reproduce: {len(plan)} stages into {out} (recipe={cfg.recipe}); finished stages "
           "are skipped", flush=True)
-    ran, jobs, i = 0, max(1, int(cfg.jobs)), 0
-    while i < len(plan):
-        step = plan[i]
-        if step.parallel:  # the run of consecutive side-by-side stages starting here
-            j = i
-            while j < len(plan) and plan[j].parallel:
-                j += 1
-            ran += stages.run_side_by_side(plan[i:j], jobs)
-            i = j
+    ran, jobs = 0, max(1, int(cfg.jobs))
+    by_name = {s.name: s for s in plan}
+    for names in groups:
+        step = by_name[names[0]]
+        if step.parallel:  # consecutive side-by-side stages
+            ran += stages.run_side_by_side([by_name[n] for n in names], jobs)
             continue
         argv = step.argv if step.argv is not None else [step.name]
         ran += stages.run(step.name, argv, tolerant=step.tolerant, cwd=step.cwd, fn=step.fn)
-        i += 1
     page = write_page(cfg, layout, plan, stages)
     total = time.perf_counter() - t0
     stage_sum = sum(stages.status(s.name)[0] or 0.0 for s in plan)
