@@ -16,7 +16,7 @@ from omegaconf import DictConfig
 from torch import nn
 
 from roboseg.config import CONF_DIR
-from roboseg.errors import RecordingError
+from roboseg.errors import CameraError, RecordingError
 from roboseg.recording import RecordingReader
 from roboseg.registration.cso import CSOConfig
 from roboseg.registration.pose import rotation_angle
@@ -516,15 +516,21 @@ def test_config_carries_boundary_offset_and_screening() -> None:
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         cfg = compose(
             "register",
-            overrides=["recording=a.mcap", "screen_iterations=12", "sdr.boundary_offset=2.5"],
+            overrides=[
+                "recording=a.mcap",
+                "screen_iterations=12",
+                "sdr.boundary_offset=2.5",
+                "disparity_retry=always",
+            ],
         )
     reg = config_from_cfg(cfg)
-    assert reg.screen_iterations == 12
+    assert reg.screen_iterations == 12 and reg.disparity_retry == "always"
     assert reg.sdr.boundary_offset == 2.5 and reg.prior.sdr.boundary_offset == 2.5
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         default = config_from_cfg(compose("register", overrides=["recording=a.mcap"]))
     assert default.sdr.boundary_offset == RegisterConfig().sdr.boundary_offset == 4.0
     assert default.screen_iterations == RegisterConfig().screen_iterations == 40
+    assert default.disparity_retry == RegisterConfig().disparity_retry == "failed"
     with pytest.raises(Exception, match="boundary_offset"):
         SDRConfig(boundary_offset=-1.0)
 
@@ -613,14 +619,30 @@ def test_sdr_prior_that_echoes_a_wrong_prior_is_a_poor_fit(
         assert dt < 10.0 and not echo and reg.converged, reg.warnings
 
 
-@pytest.mark.parametrize("term_fails", [True, False])
+@pytest.mark.parametrize(
+    ("retry", "min_iou", "term_fails", "refits", "kept"),
+    [
+        ("failed", 0.5, True, True, "plain"),  # the term's fit fails the check: redone
+        ("failed", 0.5, False, False, "term"),  # it passes: kept without a second fit
+        ("failed", 0.0, True, False, "term"),  # a check it cannot fail: its poor fit stays
+        ("always", 0.0, True, True, "plain"),  # always: the higher IoU wins regardless
+        ("always", 0.5, False, True, "either"),  # both good: the second fit is done anyway
+    ],
+)
 def test_a_fit_with_the_disparity_term_that_fails_is_done_again_without_it(
-    recording: dict, monkeypatch: pytest.MonkeyPatch, term_fails: bool
+    recording: dict,
+    monkeypatch: pytest.MonkeyPatch,
+    retry: str,
+    min_iou: float,
+    term_fails: bool,
+    refits: bool,
+    kept: str,
 ) -> None:
     """Masks whose stereo disparity is wrong drag the fit with the term away (here: stood in for
     by starting that fit 0.4 m off and stopping it after one iteration). A fit with the term
-    that fails the IoU check is redone with the plain cost and the better one kept; one that
-    passes is kept without a second fit."""
+    that fails the IoU check (``disparity_retry=failed``), or any fit with it (``always``), is
+    redone with the plain cost and the one with the higher IoU kept; otherwise the fit with the
+    term is kept without a second fit."""
     # the package's ``register`` is the function; the module is fetched by its name
     register_module = importlib.import_module("roboseg.registration.register")
     real = register_module.sdr_multistart
@@ -636,16 +658,30 @@ def test_a_fit_with_the_disparity_term_that_fails_is_done_again_without_it(
 
     monkeypatch.setattr(register_module, "sdr_multistart", multistart)
     gt = recording["gt"]
-    cfg = replace(FAST, coarse_width=None, sdr=replace(FAST.sdr, disparity_weight=1.0))
+    cfg = replace(
+        FAST,
+        coarse_width=None,
+        min_iou=min_iou,
+        disparity_retry=retry,
+        sdr=replace(FAST.sdr, disparity_weight=1.0),
+    )
     reg = register(
         recording["path"], recording["robot"], masks=lambda f: gt[f.stamp_ns], config=cfg
     )
     dt, _ = _errors(reg.T_cam_base, recording["T_true"])
-    assert reg.converged, reg.warnings
-    assert dt < 5.0, dt
+    assert weights == ([1.0, 0.0] if refits else [1.0])
     redone = [w for w in reg.warnings if "fitted again without it" in w]
-    if term_fails:
-        assert weights == [1.0, 0.0]
+    if kept == "plain":
         assert len(redone) == 1 and "disparity term ended at mean IoU" in redone[0]
+    elif kept == "term":
+        assert not redone
+    if kept == "term" and term_fails:
+        assert dt > 50.0, dt  # the fit dragged 0.4 m off stays where it ended
     else:
-        assert weights == [1.0] and not redone
+        assert reg.converged, reg.warnings
+        assert dt < 5.0, dt
+
+
+def test_disparity_retry_is_checked() -> None:
+    with pytest.raises(CameraError, match="disparity_retry"):
+        RegisterConfig(disparity_retry="never")  # type: ignore[arg-type]

@@ -49,6 +49,7 @@ log = logging.getLogger(__name__)
 
 Phase = Literal["undraped", "draped", "all"]
 Method = Literal["sdr", "sdr_prior"]
+DisparityRetry = Literal["failed", "always"]
 #: ``masks(frame) -> (left [H, W] bool, right [H, W] bool)``: segmentations given by the caller.
 MaskSource = Callable[[StereoFrame], tuple[np.ndarray, np.ndarray]]
 SIM_METADATA = "roboseg_sim"
@@ -77,7 +78,10 @@ class RegisterConfig:
     segmentation while people walk past): the SDR estimate is refined once more on the mask
     pixels within that same margin of its silhouette, as for several robots. A result whose
     mean IoU is below ``min_iou`` is reported as a poor fit, and so is an SDR-with-prior result
-    whose IoU against the prior-free segmentation is.
+    whose IoU against the prior-free segmentation is. With the stereo disparity term
+    (``sdr.disparity_weight`` > 0) the fit is done again without it when it fails that check
+    (``disparity_retry=failed``) or always (``always``), and the fit with the higher mean IoU
+    is kept.
     """
 
     configs: int = 9
@@ -97,6 +101,7 @@ class RegisterConfig:
     min_iou: float = 0.5
     other_robots_margin: float = 0.05
     trim_masks: bool = False
+    disparity_retry: DisparityRetry = "failed"
     cso: CSOConfig = field(
         default_factory=lambda: CSOConfig(n_particles=1000, iterations=20, width=48, restarts=2)
     )
@@ -112,6 +117,10 @@ class RegisterConfig:
             raise RecordingError(f"phase must be undraped, draped or all, got {self.phase!r}")
         if self.method not in ("sdr", "sdr_prior"):
             raise CameraError(f"method must be sdr or sdr_prior, got {self.method!r}")
+        if self.disparity_retry not in ("failed", "always"):
+            raise CameraError(
+                f"disparity_retry must be failed or always, got {self.disparity_retry!r}"
+            )
         if self.other_robots_margin < 0:
             raise CameraError(
                 f"other_robots_margin must be >= 0 (fraction of the image width), got "
@@ -326,8 +335,9 @@ class _Fitter:
     configurations) on given masks per view ``[C, H, W]``. With ``margins`` (px per view; several
     robots in the masks) the estimate is refined once more on the mask pixels within that
     distance of its own silhouette, and those masks are returned instead of the given ones.
-    A fit with the stereo disparity term (``sdr.disparity_weight``) that fails the fit check is
-    done again without it, and the better of the two kept (noted in :attr:`notes`)."""
+    A fit with the stereo disparity term (``sdr.disparity_weight``) is done again without it
+    when it fails the fit check (or always: ``disparity_retry``), and the one with the higher
+    mean IoU kept (noted in :attr:`notes` when that is the plain one)."""
 
     def __init__(
         self,
@@ -370,19 +380,21 @@ class _Fitter:
         t1 = time.perf_counter()
         starts = [c.T_cam_base for c in found_cso.candidates]
         res, fitted = self._fit(roi_views, roi_masks, starts, masks, cfg.sdr)
-        if cfg.sdr.disparity_weight > 0 and not _passes(res, cfg.min_iou):
+        if cfg.sdr.disparity_weight > 0 and (
+            cfg.disparity_retry == "always" or not _passes(res, cfg.min_iou)
+        ):
             # the term holds the distance of blurry masks, but masks whose two views disagree
-            # (a robot segmented in one image only, clutter on one side) give it a wrong
-            # disparity to hold: the plain cost decides then
+            # (a robot segmented in one image only, clutter or a passer-by on one side) give
+            # it a wrong disparity to hold: the plain cost decides then
             no_term = replace(cfg.sdr, disparity_weight=0.0)
             plain, plain_masks = self._fit(roi_views, roi_masks, starts, masks, no_term)
-            if _passes(plain, cfg.min_iou) or (
-                plain.reason != "diverged" and plain.mean_iou > res.mean_iou
+            if plain.reason != "diverged" and (
+                res.reason == "diverged" or plain.mean_iou > res.mean_iou
             ):
                 self.notes.append(
                     f"the fit with the stereo disparity term ended at mean IoU "
                     f"{res.mean_iou:.3f} ({res.reason}); fitted again without it: "
-                    f"{plain.mean_iou:.3f}"
+                    f"{plain.mean_iou:.3f}, kept"
                 )
                 res, fitted = plain, plain_masks
         seconds["sdr"] = seconds.get("sdr", 0.0) + time.perf_counter() - t1
