@@ -578,6 +578,41 @@ def test_two_robots_each_fitted_on_its_own_pixels(tmp_path: Path, disparity_weig
         assert not any("fitted again without it" in w for w in reg.warnings), reg.warnings
 
 
+def test_an_estimate_on_the_other_robots_pixels_is_claimed_with_its_base_turned(
+    tmp_path: Path,
+) -> None:
+    """Two robots of one model: robot_0's estimate sits on robot_1's pixels with the base turned
+    about its z axis (how a draped robot's fit ended on the other robot's blob, 157° off). The
+    claim check registers robot_1's joints on those pixels with a swarm, not by SDR from the
+    estimate, so it finds robot_1 there, and its pose."""
+    from roboseg.sim import SimConfig, simulate_recording
+
+    module = importlib.import_module("roboseg.registration.register")
+    path = tmp_path / "two.mcap"
+    simulate_recording(SimConfig(frames=24, seed=3, robots=2, width=WIDTH, height=HEIGHT), path)
+    robot = load_robot(None)
+    cfg = replace(FAST, cso=replace(FAST.cso, r_min=1.2, r_max=3.5, centre_radius=0.8))
+    with RecordingReader(path, robots=["robot_0"], joint_order={"robot_0": robot.joint_names}) as r:
+        views, _ = module._views_from_recording(r)
+        used = [
+            module.Configuration(f.index, f.stamp_ns, f.joints["robot_0"])
+            for f in list(r.frames(decode=False))[::6][: cfg.configs]
+        ]
+        truth = {n: r.lookup(LEFT, f"{n}/{robot.root_link}") for n in ("robot_0", "robot_1")}
+    q0 = torch.as_tensor(np.stack([c.joints for c in used]), dtype=robot.dtype)
+    other_q = module._other_robots_joints(path, "robot_0", robot, used)
+    fit = module._Fitter(cfg, views, robot.decimated(cfg.cso_reduction), robot, q0, None)
+    robot_1_pixels = fit.silhouettes(truth["robot_1"], other_q["robot_1"])
+    turn = np.eye(4)
+    turn[:2, :2] = [[math.cos(2.75), -math.sin(2.75)], [math.sin(2.75), math.cos(2.75)]]
+    claimed = module._claimed_by(fit, truth["robot_1"] @ turn, robot_1_pixels, other_q)
+    assert claimed is not None, "robot_1's pixels were not recognised"
+    name, own, theirs, T_theirs = claimed
+    assert name == "robot_1" and theirs > 0.9 > own, claimed[:3]
+    dt, _ = _errors(T_theirs, truth["robot_1"])
+    assert dt < 15.0, dt
+
+
 class PriorEchoSegmentor(GtSegmentor):
     """A 4-channel model that trusts its prior: the ground truth with a zero prior, else the
     prior itself."""
