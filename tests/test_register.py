@@ -605,7 +605,8 @@ def test_an_estimate_on_the_other_robots_pixels_is_claimed_with_its_base_turned(
     robot_1_pixels = fit.silhouettes(truth["robot_1"], other_q["robot_1"])
     turn = np.eye(4)
     turn[:2, :2] = [[math.cos(2.75), -math.sin(2.75)], [math.sin(2.75), math.cos(2.75)]]
-    claimed = module._claimed_by(fit, truth["robot_1"] @ turn, robot_1_pixels, other_q)
+    seconds: dict[str, float] = {}
+    claimed = module._claimed_by(fit, truth["robot_1"] @ turn, robot_1_pixels, other_q, seconds)
     assert claimed is not None, "robot_1's pixels were not recognised"
     name, own, theirs, T_theirs = claimed
     assert name == "robot_1" and theirs > 0.9 > own, claimed[:3]
