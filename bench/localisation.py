@@ -142,13 +142,21 @@ def load_pose(path: Path, robot: RobotModel) -> dict[str, Any]:
     }
 
 
-def simulate(folder: Path, index: int, frames: int, width: int, height: int) -> Path:
-    """Camera pose ``index``: a stereo recording ~1.5 m from the robot, seeded by ``index``."""
+def simulate(
+    folder: Path, index: int, frames: int, width: int, height: int, seed: int, site: int | None
+) -> Path:
+    """Camera pose ``index``: a stereo recording ~1.5 m from the robot, seeded by ``seed +
+    index``; in a random room (``site`` None) or as a session of simulated site ``site``."""
     from roboseg.sim import SimConfig, simulate_recording
 
     path = folder / f"pose_{index:02d}.mcap"
     cfg = SimConfig(
-        frames=frames, seed=100 + index, width=width, height=height, distance=(1.4, 1.6)
+        frames=frames,
+        seed=seed + index,
+        width=width,
+        height=height,
+        distance=(1.4, 1.6),
+        site=site,
     )
     simulate_recording(cfg, path)
     return path
@@ -397,6 +405,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--model4", type=Path, default=None, help="4-channel ONNX model: (c) SDR and SDR+prior"
     )
+    p.add_argument(
+        "--cases",
+        nargs="+",
+        choices=["a", "b", "c"],
+        default=["a", "b", "c"],
+        help="mask conditions: (a) ground truth, (b) degraded, (c) the models given",
+    )
+    p.add_argument(
+        "--site",
+        type=int,
+        default=None,
+        help="simulate the camera poses as sessions of this site (as `make reproduce`'s "
+        "operating_room.site, whose models then meet their own room); default: random rooms",
+    )
+    p.add_argument("--seed", type=int, default=100, help="camera pose i is simulated with seed+i")
+    p.add_argument(
+        "--disparity-weight",
+        type=float,
+        default=1.0,
+        help="(c): sdr.disparity_weight, as `make reproduce`'s draped registrations",
+    )
     p.add_argument("--poses", type=int, default=3)
     p.add_argument("--frames", type=int, default=40)
     p.add_argument("--subsets", type=int, default=5)
@@ -453,31 +482,42 @@ def main(argv: list[str] | None = None) -> int:
     t_start = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         sims = [
-            (simulate, (Path(tmp), i, args.frames, args.sim_width, args.sim_height))
+            (simulate, (Path(tmp), i, args.frames, args.sim_width, args.sim_height, args.seed,
+                        args.site))
             for i in range(args.poses)
         ]
         paths = run_tasks(sims, args.jobs)
         # one task per (camera pose, mask condition), then one per swarm placement
-        cases = [(i, case) for i in range(args.poses) for case in (GT, DEGRADED)]
+        wanted = [case for key, case in (("a", GT), ("b", DEGRADED)) if key in args.cases]
+        cases = [(i, case) for i in range(args.poses) for case in wanted]
         tasks = [(mask_case, (paths[i], i, case, args)) for i, case in cases]
         tasks += [(basin_placement, (p, args)) for p in range(args.placements)]
         done = run_tasks(tasks, args.jobs)
-        results: dict[str, dict[int, list[np.ndarray]]] = {GT: {}, DEGRADED: {}}
+        results: dict[str, dict[int, list[np.ndarray]]] = {case: {} for case in wanted}
         achieved: list[float] = []
         for (_, case), (errors, ious) in zip(cases, done[: len(cases)], strict=True):
             for k, errs in errors.items():
                 results[case].setdefault(k, []).extend(errs)
             achieved += ious
         basin = done[len(cases) :]
-        model_results = model_condition(paths, robot, args)
-        results.update(model_results)
+        mask_ious: dict[str, list[float]] = {}
+        if "c" in args.cases:
+            model_results, mask_ious = model_condition(paths, args)
+            results.update(model_results)
         rows = []
         for name, errors in results.items():
             rows += summarise(name, errors, robot.frame_names)
-        print(
-            f"degraded masks: achieved IoU median {np.median(achieved):.3f} "
-            f"(Q1 {np.percentile(achieved, 25):.3f}, Q3 {np.percentile(achieved, 75):.3f})"
-        )
+        if achieved:
+            print(
+                f"degraded masks: achieved IoU median {np.median(achieved):.3f} "
+                f"(Q1 {np.percentile(achieved, 25):.3f}, Q3 {np.percentile(achieved, 75):.3f})"
+            )
+        for name, values in mask_ious.items():
+            print(
+                f"{name}: the masks it fitted against the simulator's, IoU median "
+                f"{np.median(values):.3f} (Q1 {np.percentile(values, 25):.3f}, "
+                f"Q3 {np.percentile(values, 75):.3f}, {len(values)} views)"
+            )
         print(f"per-link medians (mm) in order {' '.join(robot.frame_names)}")
         print(
             format_table(
@@ -486,7 +526,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         plot(results, robot.frame_names, args.out / "localisation.png")
         print(f"plot: {args.out / 'localisation.png'}")
-        twelve = results[GT].get(max(args.sizes))
+        twelve = results.get(GT, {}).get(max(args.sizes))
         if twelve:
             med = float(np.median(np.concatenate(twelve)[:, -1]))
             what = f"{max(args.sizes)} configs, {args.sim_width} px images, SDR at {args.width} px"
@@ -512,48 +552,87 @@ def _models(args: argparse.Namespace) -> list[tuple[str, Path]]:
 
 
 def model_condition(
-    paths: list[Path], robot: RobotModel, args: argparse.Namespace
-) -> dict[str, dict[int, list[np.ndarray]]]:
-    """(c) trained models on draped frames: SDR (3- or 4-channel model, zero prior) and SDR with
-    prior (4-channel model); per size one spread selection of draped frames per camera pose
-    (:func:`register` chooses them), errors on the other frames of the recording."""
-    models = _models(args)
-    if not models:
-        print("(c) skipped: no model given (--model3 / --model4 ONNX files)")
-        return {}
-    from roboseg.segmentor import OnnxSegmentor
-
-    poses = [load_pose(p, robot) for p in paths]
-    out: dict[str, dict[int, list[np.ndarray]]] = {}
-    for tag, path in models:
+    paths: list[Path], args: argparse.Namespace
+) -> tuple[dict[str, dict[int, list[np.ndarray]]], dict[str, list[float]]]:
+    """(c) trained models on draped frames: SDR (3-channel model; 4-channel model with a zero
+    prior) and SDR with prior (4-channel model: the SDR stage of the same registration gives
+    its SDR row). Per camera pose and size one spread selection of draped frames
+    (:func:`register` chooses them), errors on the other frames of the recording. One task per
+    model and camera pose on ``--jobs`` processes. Returns the errors per row and, per row, the
+    models' mask IoUs against the simulator's masks on the frames registered."""
+    models = [(tag, path) for tag, path in _models(args) if path.is_file()]
+    for _, path in _models(args):
         if not path.is_file():
             print(f"(c) skipped for {path}: no such file")
+    if not _models(args):
+        print("(c) skipped: no model given (--model3 / --model4 ONNX files)")
+    if not models:
+        return {}, {}
+    tasks = [(model_case, (path, i, tag, mp, args))
+             for tag, mp in models for i, path in enumerate(paths)]
+    errors: dict[str, dict[int, list[np.ndarray]]] = {}
+    mask_ious: dict[str, list[float]] = {}
+    for task_errors, task_ious in run_tasks(tasks, args.jobs):
+        for name, by_k in task_errors.items():
+            for k, errs in by_k.items():
+                errors.setdefault(name, {}).setdefault(k, []).extend(errs)
+        for name, values in task_ious.items():
+            mask_ious.setdefault(name, []).extend(values)
+    return errors, mask_ious
+
+
+def model_case(
+    path: Path, index: int, tag: str, model: Path, args: argparse.Namespace
+) -> tuple[dict[str, dict[int, list[np.ndarray]]], dict[str, list[float]]]:
+    """Case (c) on camera pose ``index`` with the ONNX ``model``: one registration per size (with
+    the page's draped SDR setting, ``--disparity-weight``); errors per row name and size, and
+    the model's per-view mask IoUs on the registered frames."""
+    from roboseg.segmentor import OnnxSegmentor
+
+    robot, _, _ = robots()
+    pose = load_pose(path, robot)
+    seg = OnnxSegmentor(model, threads=1)
+    prior = seg.in_channels == 4
+    rows = {"sdr": f"(c) {tag} SDR"} | ({"sdr_prior": f"(c) {tag} SDR+prior"} if prior else {})
+    errors: dict[str, dict[int, list[np.ndarray]]] = {}
+    ious: dict[str, list[float]] = {}
+    by_stamp = {int(s): i for i, s in enumerate(pose["stamps"])}
+    for k in args.sizes:
+        cfg = RegisterConfig(
+            configs=k,
+            phase="draped",
+            method="sdr_prior" if prior else "sdr",
+            width=args.width,
+            cso=swarm_config(args),
+            sdr=replace(sdr_config(args), disparity_weight=args.disparity_weight),
+        )
+        try:
+            reg = register(pose["path"], robot, segmentor=seg, config=cfg)
+        except Exception as exc:  # noqa: BLE001 - report and go on
+            print(f"(c) {tag} k={k} {path.name}: {exc}")
             continue
-        seg = OnnxSegmentor(path, threads=1)
-        methods = ["sdr", "sdr_prior"] if seg.in_channels == 4 else ["sdr"]
-        for method in methods:
-            name = f"(c) {tag} {method}"
-            for pose in poses:
-                for k in args.sizes:
-                    cfg = RegisterConfig(
-                        configs=k,
-                        phase="draped",
-                        method=method,
-                        width=args.width,
-                        cso=swarm_config(args),
-                        sdr=sdr_config(args),
-                    )
-                    try:
-                        reg = register(pose["path"], robot, segmentor=seg, config=cfg)
-                    except Exception as exc:  # noqa: BLE001 - report and go on
-                        print(f"{name} k={k} {pose['path'].name}: {exc}")
-                        continue
-                    used = {c.stamp_ns for c in reg.configurations}
-                    held = np.array([s not in used for s in pose["stamps"]])
-                    out.setdefault(name, {}).setdefault(k, []).append(
-                        frame_errors_mm(robot, pose["q"][held], reg.T_cam_base, pose["T_true"])
-                    )
-    return out
+        used = [by_stamp[c.stamp_ns] for c in reg.configurations]
+        held = np.setdiff1d(np.arange(len(pose["q"])), used)
+        found = {"sdr": reg.sdr.T_cam_base}
+        if prior:
+            found["sdr_prior"] = reg.T_cam_base
+        for method, T in found.items():
+            err = frame_errors_mm(robot, pose["q"][held], T, pose["T_true"])
+            errors.setdefault(rows[method], {}).setdefault(k, []).append(err)
+            log.info("%s k=%d %s: tool-centre median %.1f mm (residual IoU %.3f)", rows[method],
+                     k, path.name, np.median(err[:, -1]),
+                     (reg.sdr if method == "sdr" else reg.result).mean_iou)
+        # the masks each row fitted: zero-prior ones for SDR, for SDR with prior the last
+        # ones segmented with the estimate's prior (``reg.masks``)
+        fitted = {"sdr": [seg.predict_mask(im) for im in reg.images]}
+        if prior:
+            fitted["sdr_prior"] = [m > 0 for m in reg.masks]
+        for method, masks in fitted.items():
+            ious.setdefault(rows[method], []).extend(
+                binary_iou(masks[v][c], pose["masks"][v][f])
+                for v in range(len(masks)) for c, f in enumerate(used)
+            )
+    return errors, ious
 
 
 def time_full_registration(

@@ -1,12 +1,17 @@
-"""The localisation bench's own machinery: mask degradation and its worker pool."""
+"""The localisation bench's own machinery: mask degradation, its worker pool and the choice of
+mask conditions and camera poses."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
+import pytest
 
-from bench.localisation import degrade_to_iou, run_tasks
+from bench.localisation import degrade_to_iou, main, run_tasks
 from roboseg.evaluation.metrics import binary_iou
+from roboseg.recording import RecordingReader
 
 
 def _disc(radius: int) -> np.ndarray:
@@ -45,3 +50,33 @@ def test_worker_pool_returns_results_in_task_order() -> None:
     expected = [1.0, 4 / 7, 4 / 10, 4 / 13]
     assert run_tasks(tasks, 1) == expected
     assert run_tasks(tasks, 2) == expected
+
+
+def test_only_the_chosen_mask_conditions_run_on_the_sites_camera_poses(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import bench.localisation as bench
+
+    simulated: list[Path] = []
+    simulate = bench.simulate
+
+    def keep(folder: Path, *args: object) -> Path:
+        path = simulate(folder, *args)  # type: ignore[arg-type]
+        with RecordingReader(path) as r:
+            simulated.append(path)
+            meta = r.metadata()["roboseg_sim"]
+        assert meta["site"] == "1" and meta["seed"] == "7000", meta
+        return path
+
+    monkeypatch.setattr(bench, "simulate", keep)
+    missing = tmp_path / "missing.onnx"
+    argv = ["--quick", "--cases", "c", "--site", "1", "--seed", "7000", "--poses", "1",
+            "--frames", "3", "--placements", "0", "--skip-timing", "--jobs", "1",
+            "--model3", str(missing), "--out", str(tmp_path)]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert len(simulated) == 1
+    assert f"(c) skipped for {missing}: no such file" in out
+    assert "(a) gt masks" not in out and "(b) degraded" not in out
+    assert "degraded masks: achieved" not in out
+    assert (tmp_path / "localisation.png").is_file()
