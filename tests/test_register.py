@@ -655,6 +655,32 @@ def test_sdr_prior_that_echoes_a_wrong_prior_is_a_poor_fit(
         assert dt < 10.0 and not echo and reg.converged, reg.warnings
 
 
+def test_sdr_with_prior_rounds_optimise_with_the_registrations_sdr_settings(
+    recording: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The rounds of SDR with prior fit with ``sdr``'s boundary offsets, disparity term and lr
+    (not with ``prior.sdr``'s defaults: without the offsets and the term a draped fit 28 mm off
+    drifted to 141 mm), and keep ``prior``'s iterations and refresh interval."""
+    module = importlib.import_module("roboseg.registration.register")
+    seen: list[PriorConfig] = []
+
+    def capture(*args, **kwargs):
+        seen.append(args[6])
+        return sdr_with_prior(*args, **kwargs)
+
+    monkeypatch.setattr(module, "sdr_with_prior", capture)
+    sdr_cfg = replace(FAST.sdr, boundary_offset=3.0, disparity_weight=0.5, lr=3e-3)
+    cfg = replace(FAST, method="sdr_prior", sdr=sdr_cfg,
+                  prior=PriorConfig(iterations=10, refresh_every=5))
+    reg = register(recording["path"], recording["robot"],
+                   segmentor=GtSegmentor(_gt_table(recording)), config=cfg)
+    assert len(seen) == 1 and reg.prior is not None
+    used = seen[0]
+    assert used.sdr == sdr_cfg
+    assert (used.iterations, used.refresh_every, used.width) == (10, 5, cfg.width)
+    assert reg.prior.refreshes == 2
+
+
 @pytest.mark.parametrize(
     ("retry", "min_iou", "term_fails", "refits", "kept"),
     [

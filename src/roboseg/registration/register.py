@@ -78,10 +78,11 @@ class RegisterConfig:
     segmentation while people walk past): the SDR estimate is refined once more on the mask
     pixels within that same margin of its silhouette, as for several robots. A result whose
     mean IoU is below ``min_iou`` is reported as a poor fit, and so is an SDR-with-prior result
-    whose IoU against the prior-free segmentation is. With the stereo disparity term
-    (``sdr.disparity_weight`` > 0) the fit is done again without it when it fails that check
-    (``disparity_retry=failed``) or always (``always``), and the fit with the higher mean IoU
-    is kept.
+    whose IoU against the prior-free segmentation is. SDR with prior runs ``prior``'s
+    iterations and refreshes with ``sdr``'s settings (offsets, disparity term, lr). With the
+    stereo disparity term (``sdr.disparity_weight`` > 0) the fit is done again without it when
+    it fails that check (``disparity_retry=failed``) or always (``always``), and the fit with
+    the higher mean IoU is kept.
     """
 
     configs: int = 9
@@ -657,7 +658,8 @@ def register(
     res, prior = res_sdr, None
     if cfg.method == "sdr_prior":
         t1 = time.perf_counter()
-        prior_cfg = replace(cfg.prior, width=cfg.width, roi_margin=cfg.roi_margin)
+        # the rounds optimise as SDR did (boundary offsets, disparity term, lr)
+        prior_cfg = replace(cfg.prior, sdr=cfg.sdr, width=cfg.width, roi_margin=cfg.roi_margin)
         segment_prior = segment
         if others:
 
