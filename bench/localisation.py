@@ -10,7 +10,9 @@ errors (origin of every frame L0…EE transformed by the estimate vs the truth),
 
 Mask conditions: (a) ground-truth masks, (b) masks degraded to IoU ≈ 0.73 (erode/dilate + blobs,
 achieved IoU printed), (c) ``--model3``/``--model4`` ONNX models on draped frames: SDR, and SDR
-with prior for a 4-channel model (skipped, and said so, when no model is given).
+with prior for a 4-channel model (skipped, and said so, when no model is given); ``--cases``
+picks the conditions, ``--site`` simulates the camera poses as sessions of the site the models
+were trained in (``make reproduce``'s ``operating_room.site``).
 The swarm runs once per camera pose (on 4 configurations of the first subset of the largest size;
 up to ``--restarts`` further swarms with new seeds while its best IoU stays below 0.9);
 each subset is then localised by multi-start SDR from its candidates (screened for ``--screen``
@@ -25,6 +27,8 @@ registration runs alone, after them.
     python bench/localisation.py --quick            # smoke run at 320 px, ~15 min on 2 cores
     python bench/localisation.py --skip-timing      # full protocol without (c): ~2 h on 2 cores
     python bench/localisation.py --model4 outputs/default/model.onnx   # with (c): longer
+    python bench/localisation.py --cases c --site 1 --seed 7000 --placements 0 --skip-timing \\
+        --trim-masks --model3 M3.onnx --model4 M4.onnx   # (c) alone on the models' site: ~20 min
 """
 
 from __future__ import annotations
@@ -426,6 +430,11 @@ def build_parser() -> argparse.ArgumentParser:
         default=1.0,
         help="(c): sdr.disparity_weight, as `make reproduce`'s draped registrations",
     )
+    p.add_argument(
+        "--trim-masks",
+        action="store_true",
+        help="(c): fit on the mask pixels near the estimate's silhouette (register's trim_masks)",
+    )
     p.add_argument("--poses", type=int, default=3)
     p.add_argument("--frames", type=int, default=40)
     p.add_argument("--subsets", type=int, default=5)
@@ -585,8 +594,8 @@ def model_case(
     path: Path, index: int, tag: str, model: Path, args: argparse.Namespace
 ) -> tuple[dict[str, dict[int, list[np.ndarray]]], dict[str, list[float]]]:
     """Case (c) on camera pose ``index`` with the ONNX ``model``: one registration per size (with
-    the page's draped SDR setting, ``--disparity-weight``); errors per row name and size, and
-    the model's per-view mask IoUs on the registered frames."""
+    the page's draped SDR setting, ``--disparity-weight``, and ``--trim-masks``); errors per row
+    name and size, and the model's per-view mask IoUs on the registered frames."""
     from roboseg.segmentor import OnnxSegmentor
 
     robot, _, _ = robots()
@@ -605,6 +614,7 @@ def model_case(
             width=args.width,
             cso=swarm_config(args),
             sdr=replace(sdr_config(args), disparity_weight=args.disparity_weight),
+            trim_masks=args.trim_masks,
         )
         try:
             reg = register(pose["path"], robot, segmentor=seg, config=cfg)

@@ -521,16 +521,18 @@ def test_config_carries_boundary_offset_and_screening() -> None:
                 "screen_iterations=12",
                 "sdr.boundary_offset=2.5",
                 "disparity_retry=always",
+                "trim_masks=true",
             ],
         )
     reg = config_from_cfg(cfg)
-    assert reg.screen_iterations == 12 and reg.disparity_retry == "always"
+    assert reg.screen_iterations == 12 and reg.disparity_retry == "always" and reg.trim_masks
     assert reg.sdr.boundary_offset == 2.5 and reg.prior.sdr.boundary_offset == 2.5
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         default = config_from_cfg(compose("register", overrides=["recording=a.mcap"]))
     assert default.sdr.boundary_offset == RegisterConfig().sdr.boundary_offset == 4.0
     assert default.screen_iterations == RegisterConfig().screen_iterations == 40
     assert default.disparity_retry == RegisterConfig().disparity_retry == "failed"
+    assert default.trim_masks is RegisterConfig().trim_masks is False
     with pytest.raises(Exception, match="boundary_offset"):
         SDRConfig(boundary_offset=-1.0)
 
@@ -679,6 +681,41 @@ def test_sdr_with_prior_rounds_optimise_with_the_registrations_sdr_settings(
     assert used.sdr == sdr_cfg
     assert (used.iterations, used.refresh_every, used.width) == (10, 5, cfg.width)
     assert reg.prior.refreshes == 2
+
+
+class StrayBlobSegmentor(GtSegmentor):
+    """The ground truth plus a false positive: a 24-px square in the corner farthest from the
+    robot (a model taking a box for the robot)."""
+
+    def __init__(self, table: dict[bytes, np.ndarray]) -> None:
+        super().__init__(table)
+        union = np.any(np.stack(list(table.values())), axis=0)
+        ys, xs = np.nonzero(union)
+        self.blob = np.zeros((HEIGHT, WIDTH), bool)
+        top = 0 if ys.mean() > HEIGHT / 2 else HEIGHT - 24
+        left = 0 if xs.mean() > WIDTH / 2 else WIDTH - 24
+        self.blob[top : top + 24, left : left + 24] = True
+        assert not (self.blob & union).any()
+
+    def predict(self, images: np.ndarray, prior: np.ndarray | None = None) -> np.ndarray:
+        return np.maximum(super().predict(images, prior), self.blob.astype(np.float32))
+
+
+@pytest.mark.parametrize("trim", [False, True])
+def test_trimmed_masks_keep_a_stray_blob_out_of_sdr_with_priors_rounds(
+    recording: dict, trim: bool
+) -> None:
+    """``trim_masks``: the rounds of SDR with prior fit only the mask pixels near each prior, so
+    a false positive far from the robot is left out of them, as it is of the SDR refit."""
+    seg = StrayBlobSegmentor(_gt_table(recording))
+    cfg = replace(FAST, method="sdr_prior", trim_masks=trim,
+                  prior=PriorConfig(iterations=10, refresh_every=5))
+    reg = register(recording["path"], recording["robot"], segmentor=seg, config=cfg)
+    assert reg.prior is not None and reg.prior.refreshes == 2
+    in_blob = [bool((m & seg.blob).any()) for m in reg.masks]  # the last round's masks
+    assert in_blob == [not trim, not trim]
+    dt, _ = _errors(reg.T_cam_base, recording["T_true"])
+    assert dt < 10.0 or not trim, dt
 
 
 @pytest.mark.parametrize(

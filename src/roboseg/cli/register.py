@@ -247,6 +247,7 @@ def config_from_cfg(cfg: DictConfig) -> RegisterConfig:
             sdr_reduction=float(cfg.sdr_reduction),
             min_iou=float(cfg.min_iou),
             other_robots_margin=float(cfg.get("other_robots_margin", 0.05)),
+            trim_masks=bool(cfg.get("trim_masks", False)),
             disparity_retry=str(cfg.get("disparity_retry", "failed")),  # type: ignore[arg-type]
             cso_configs=int(cfg.cso_configs),
             cso=CSOConfig(**cso_kw),

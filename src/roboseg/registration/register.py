@@ -75,8 +75,9 @@ class RegisterConfig:
     pixels within ``other_robots_margin`` × image width of this robot's silhouette (SDR with
     prior does the same around each prior), so the other robots neither pull the fit nor lower
     its IoU; 0 turns this off. ``trim_masks``: the masks may hold more than the robot (motion
-    segmentation while people walk past): the SDR estimate is refined once more on the mask
-    pixels within that same margin of its silhouette, as for several robots. A result whose
+    segmentation while people walk past, a model's false positives on other objects): the SDR
+    estimate is refined once more on the mask pixels within that same margin of its silhouette,
+    and SDR with prior keeps those around each prior, as for several robots. A result whose
     mean IoU is below ``min_iou`` is reported as a poor fit, and so is an SDR-with-prior result
     whose IoU against the prior-free segmentation is. SDR with prior runs ``prior``'s
     iterations and refreshes with ``sdr``'s settings (offsets, disparity term, lr). With the
@@ -661,7 +662,7 @@ def register(
         # the rounds optimise as SDR did (boundary offsets, disparity term, lr)
         prior_cfg = replace(cfg.prior, sdr=cfg.sdr, width=cfg.width, roi_margin=cfg.roi_margin)
         segment_prior = segment
-        if others:
+        if trim:
 
             def segment_prior(imgs: np.ndarray, prior_render: np.ndarray) -> np.ndarray:
                 r = cfg.other_robots_margin * imgs.shape[2]
