@@ -299,6 +299,12 @@ def mask_case(
     return cross_validate(pose, masks, robot, coarse, mid, args, subsets), achieved
 
 
+def extend_errors(into: dict[int, list[np.ndarray]], errors: dict[int, list[np.ndarray]]) -> None:
+    """Append one task's per-subset errors ``{k: [[N, F] mm]}`` to ``into``, size by size."""
+    for k, errs in errors.items():
+        into.setdefault(k, []).extend(errs)
+
+
 def summarise(name: str, errors: dict[int, list[np.ndarray]], frame_names: list[str]) -> list[list]:
     """Table rows: case, k, subsets, tool-centre median/Q1/Q3 (mm), per-frame medians (mm)."""
     rows = []
@@ -505,8 +511,7 @@ def main(argv: list[str] | None = None) -> int:
         results: dict[str, dict[int, list[np.ndarray]]] = {case: {} for case in wanted}
         achieved: list[float] = []
         for (_, case), (errors, ious) in zip(cases, done[: len(cases)], strict=True):
-            for k, errs in errors.items():
-                results[case].setdefault(k, []).extend(errs)
+            extend_errors(results[case], errors)
             achieved += ious
         basin = done[len(cases) :]
         mask_ious: dict[str, list[float]] = {}
@@ -523,7 +528,7 @@ def main(argv: list[str] | None = None) -> int:
             )
         for name, values in mask_ious.items():
             print(
-                f"{name}: the masks it fitted against the simulator's, IoU median "
+                f"{name}: the model's masks against the simulator's, IoU median "
                 f"{np.median(values):.3f} (Q1 {np.percentile(values, 25):.3f}, "
                 f"Q3 {np.percentile(values, 75):.3f}, {len(values)} views)"
             )
@@ -569,22 +574,22 @@ def model_condition(
     (:func:`register` chooses them), errors on the other frames of the recording. One task per
     model and camera pose on ``--jobs`` processes. Returns the errors per row and, per row, the
     models' mask IoUs against the simulator's masks on the frames registered."""
-    models = [(tag, path) for tag, path in _models(args) if path.is_file()]
-    for _, path in _models(args):
-        if not path.is_file():
-            print(f"(c) skipped for {path}: no such file")
-    if not _models(args):
+    given = _models(args)
+    if not given:
         print("(c) skipped: no model given (--model3 / --model4 ONNX files)")
-    if not models:
-        return {}, {}
+    models = []
+    for tag, path in given:
+        if path.is_file():
+            models.append((tag, path))
+        else:
+            print(f"(c) skipped for {path}: no such file")
     tasks = [(model_case, (path, i, tag, mp, args))
              for tag, mp in models for i, path in enumerate(paths)]
     errors: dict[str, dict[int, list[np.ndarray]]] = {}
     mask_ious: dict[str, list[float]] = {}
     for task_errors, task_ious in run_tasks(tasks, args.jobs):
         for name, by_k in task_errors.items():
-            for k, errs in by_k.items():
-                errors.setdefault(name, {}).setdefault(k, []).extend(errs)
+            extend_errors(errors.setdefault(name, {}), by_k)
         for name, values in task_ious.items():
             mask_ious.setdefault(name, []).extend(values)
     return errors, mask_ious
@@ -632,8 +637,8 @@ def model_case(
             log.info("%s k=%d %s: tool-centre median %.1f mm (residual IoU %.3f)", rows[method],
                      k, path.name, np.median(err[:, -1]),
                      (reg.sdr if method == "sdr" else reg.result).mean_iou)
-        # the masks each row fitted: zero-prior ones for SDR, for SDR with prior the last
-        # ones segmented with the estimate's prior (``reg.masks``)
+        # the model's masks per row: with a zero prior for SDR (before any trimming), for SDR
+        # with prior its last round's, segmented with the estimate's prior (``reg.masks``)
         fitted = {"sdr": [seg.predict_mask(im) for im in reg.images]}
         if prior:
             fitted["sdr_prior"] = [m > 0 for m in reg.masks]
