@@ -404,6 +404,11 @@ def plot(
     plt.close(fig)
 
 
+def _site(text: str) -> int | None:
+    """``--site``'s value: a site number, or ``none`` / ``null`` for random rooms."""
+    return None if text.strip().lower() in ("none", "null", "") else int(text)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument(
@@ -424,10 +429,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--site",
-        type=int,
+        type=_site,
         default=None,
         help="simulate the camera poses as sessions of this site (as `make reproduce`'s "
-        "operating_room.site, whose models then meet their own room); default: random rooms",
+        "operating_room.site, whose models then meet their own room); default or 'none': "
+        "random rooms",
     )
     p.add_argument("--seed", type=int, default=100, help="camera pose i is simulated with seed+i")
     p.add_argument(

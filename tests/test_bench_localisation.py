@@ -80,3 +80,14 @@ def test_only_the_chosen_mask_conditions_run_on_the_sites_camera_poses(
     assert "(a) gt masks" not in out and "(b) degraded" not in out
     assert "degraded masks: achieved" not in out
     assert (tmp_path / "localisation.png").is_file()
+
+
+def test_site_none_means_random_rooms() -> None:
+    from bench.localisation import build_parser
+
+    parser = build_parser()
+    assert parser.parse_args(["--site", "none"]).site is None
+    assert parser.parse_args(["--site", "null"]).site is None
+    assert parser.parse_args(["--site", "3"]).site == 3
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--site", "room"])

@@ -393,6 +393,15 @@ def test_operating_room_size_falls_back_to_every_recordings_size(tmp_path: Path)
     plan = {step.name: step for step in build_plan(cfg, layout)}
     assert {"camera.width=960", "camera.height=540"} <= set(plan["simulate_or_test_00"].argv)
     assert {"camera.width=480", "camera.height=270"} <= set(plan["simulate_lab_val_00"].argv)
+    # the models' localisation bench meets them in their own room, at its image size
+    bench = plan["bench_localisation_models"].argv
+    assert bench[bench.index("--site") + 1] == "1"
+    assert bench[bench.index("--sim-width") + 1 :][:3] == ["960", "--sim-height", "540"]
+    assert str(layout.onnx(str(cfg.localise.cpu.sdr))) in bench
+    cfg.operating_room.site = None
+    plan = {step.name: step for step in build_plan(cfg, layout)}
+    bench = plan["bench_localisation_models"].argv
+    assert bench[bench.index("--site") + 1] == "none"
     cfg.operating_room.height = 8
     with pytest.raises(SystemExit, match="operating_room.width / height must be >= 16 px"):
         operating_room_size(cfg)
