@@ -57,7 +57,8 @@ def tiny_overrides(tmp: Path) -> list[str]:
         'annotate.overrides=["min_joint_speed=0.0"]', "track.frames=6", MODELS,
         "localise.cpu={sdr: m3, sdr_prior: m4}", "undraped.overrides=[]",
         "walkers.recordings=[or_train_00]", "walkers.people=1",
-        "benches=[{name: echo, cmd: [python, -c, 'print(\"figure 42.0 ms\")']}]",
+        "benches=[{name: echo, cmd: [python, -c, 'import os; print(\"figure 42.0 ms\");"
+        " print(\"plot: \" + os.getcwd() + \"/bench/p.png\")']}]",
     ]
 
 
@@ -110,6 +111,7 @@ def test_reproduce_tiny_study_then_resume(tmp_path: Path) -> None:
     assert "comes from simulated recordings" in page and "SAM 2" in page
     assert "and the lab bootstrap's training recordings (`lab.in_training`)" in page
     assert "figure 42.0 ms" in page and "logical cores" in page
+    assert "plot: bench/p.png" in page  # what a bench prints names paths from the project root
     figures = tmp_path / "docs" / "results"
     for name in ("localisation.png", "breathing.png", "qualitative_m3.png"):
         assert (figures / name).is_file() and f"results/{name}" in page
@@ -398,6 +400,10 @@ def test_operating_room_size_falls_back_to_every_recordings_size(tmp_path: Path)
     assert bench[bench.index("--site") + 1] == "1"
     assert bench[bench.index("--sim-width") + 1 :][:3] == ["960", "--sim-height", "540"]
     assert str(layout.onnx(str(cfg.localise.cpu.sdr))) in bench
+    # what it writes stays in the run's folder, beside the quick bench's
+    assert bench[bench.index("--out") + 1] == str(tmp_path / "bench" / "localisation_models")
+    quick = plan["bench_localisation"].argv
+    assert quick[quick.index("--out") + 1] == str(tmp_path / "bench" / "localisation")
     cfg.operating_room.site = None
     plan = {step.name: step for step in build_plan(cfg, layout)}
     bench = plan["bench_localisation_models"].argv

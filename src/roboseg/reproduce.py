@@ -547,7 +547,8 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
     fields = {"models": layout.out / "models", "sdr_model": layout.onnx(str(chosen["sdr"])),
               "sdr_prior_model": layout.onnx(str(chosen["sdr_prior"])),
               "site": "none" if site is None else int(site),
-              "or_width": or_size[0], "or_height": or_size[1]}
+              "or_width": or_size[0], "or_height": or_size[1],
+              "bench_out": layout.out / "bench"}
     for bench in cfg.benches:
         argv = [sys.executable if a == "python" else str(a).format(**fields) for a in bench.cmd]
         steps.append(Step(f"bench_{bench.name}", argv, tolerant=True, cwd=PROJECT_ROOT))

@@ -663,7 +663,7 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
         add(f"\n### {step.name.removeprefix('bench_')}\n")
         command = portable(command, Path.cwd())
         add(f"- command: `{command}`\n- ran: {where}\n- status: {_status(stages, step.name)}\n")
-        text = _stdout(logs, step.name)
+        text = portable(_stdout(logs, step.name), Path.cwd())
         add("\n```text\n" + (text or "(no output)") + "\n```\n")
 
     # run
