@@ -449,7 +449,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--poses", type=int, default=3)
     p.add_argument("--frames", type=int, default=40)
-    p.add_argument("--subsets", type=int, default=5)
+    p.add_argument("--subsets", type=int, default=5,
+                   help="random subsets per pose and size for (a) and (b); (c) registers once")
     p.add_argument("--sizes", type=int, nargs="+", default=list(SIZES))
     p.add_argument("--placements", type=int, default=20)
     # the paper's recordings are 960×540 or 1920×1080, localised at up to 512 px
