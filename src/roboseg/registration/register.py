@@ -414,8 +414,12 @@ class _Fitter:
         """SDR from ``starts`` with ``sdr_cfg`` (:meth:`_sdr`), refitted on the estimate's own
         pixels when other robots are in the masks; the result and the masks it was fitted on
         (full size, per view ``[C, H, W]``) — what :func:`register`'s fit check judges."""
-        res = self._sdr(roi_views, roi_masks, starts, sdr_cfg)
-        if self.margins is not None and res.reason != "diverged":
+        if self.margins is None:
+            return self._sdr(roi_views, roi_masks, starts, sdr_cfg), masks
+        # the centroid disparity of masks holding other robots or clutter is not this robot's:
+        # the first fit goes without the term, the refit on the estimate's own pixels with it
+        res = self._sdr(roi_views, roi_masks, starts, replace(sdr_cfg, disparity_weight=0.0))
+        if res.reason != "diverged":
             return refit_on_own_pixels(
                 self.verts, self.fine.faces, self.views, masks, res,
                 self.silhouettes(res.T_cam_base), self.margins, replace(self.cfg, sdr=sdr_cfg),
