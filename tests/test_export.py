@@ -140,6 +140,35 @@ def test_onnx_without_metadata_needs_overrides(tmp_path):
     assert seg.predict(np.zeros((2, 32, 32, 3), np.uint8)).shape == (2, 32, 32)
 
 
+def test_multi_scale_averages_the_sizes(exported):
+    _, path = exported[4]
+    seg = OnnxSegmentor(path, scales=(1.0, 1.5, 1.25))
+    assert seg.sizes() == [(64, 64), (96, 96), (80, 80)]
+    rng = np.random.default_rng(2)
+    images = rng.integers(0, 256, (2, 90, 160, 3), dtype=np.uint8)
+    prior = (rng.random((2, 90, 160)) > 0.5).astype(np.float32)
+    each = [OnnxSegmentor(path, scales=(s,)).predict(images, prior) for s in seg.scales]
+    # the sizes really differ in what they predict, and the mean is what comes out
+    assert np.abs(each[0] - each[1]).max() > 1e-3
+    np.testing.assert_allclose(seg.predict(images, prior), np.mean(each, 0), atol=1e-6)
+
+
+def test_scales_must_be_positive_and_need_a_dynamic_graph(exported, tmp_path):
+    _, path = exported[3]
+    for bad in ((), (0.0,), (1.0, -1.0), (float("nan"),)):
+        with pytest.raises(ModelFileError, match="scales must be"):
+            OnnxSegmentor(path, scales=bad)
+    fixed = tmp_path / "fixed.onnx"
+    torch.onnx.export(
+        TinyNet(3), (torch.zeros(1, 3, 64, 64),), str(fixed), dynamo=False, opset_version=17,
+        input_names=["input"], output_names=["logits"],
+    )
+    props = meta_for(3).to_props()
+    assert OnnxSegmentor(fixed, overrides=props).sizes() == [(64, 64)]
+    with pytest.raises(ModelFileError, match="fixed"):
+        OnnxSegmentor(fixed, overrides=props, scales=(1.0, 1.5))
+
+
 def test_missing_file_is_a_clear_error(tmp_path):
     with pytest.raises(ModelFileError, match="no such ONNX file"):
         OnnxSegmentor(tmp_path / "nope.onnx")

@@ -345,9 +345,9 @@ def test_undraped_segmentor_chooses_the_bootstrap_or_none(
     draped = plan["register_draped_sdr_robot_0"].argv
     assert f"model={layout.onnx(cfg.localise.cpu.sdr)}" in draped
     # the stereo disparity term holds the draped fits' distance (the undraped ones' is set in
-    # undraped.overrides, replaced by this test's)
-    assert draped[-1] == "sdr.disparity_weight=1.0"
-    assert not any(a.startswith("sdr.disparity_weight") for a in argv)
+    # undraped.overrides, replaced by this test's); the far test robots are segmented larger
+    assert draped[-2:] == ["sdr.disparity_weight=1.0", "model_scales=[1.25,1.5,2.0]"]
+    assert not any(a.startswith(("sdr.disparity_weight", "model_scales")) for a in argv)
     # the operating-room recordings are sessions of one site; lab recordings random rooms
     assert "site=1" in plan["simulate_or_val_00"].argv
     # the operating room at its own size (960×540), the lab at every recording's (480×270)

@@ -6,6 +6,11 @@ registration runtime can run in the operating room without the training stack.
 The model file describes itself in its ONNX ``metadata_props`` (written by ``roboseg-export``):
 input size, channels, normalisation and threshold. Images of any size are resized (anisotropically,
 as in training) to the model's input size and the probabilities are resized back.
+
+Multi-scale inference (``scales``): the probabilities are averaged over inputs of the model's
+size times each scale (a fully convolutional model takes any size). A robot much farther from
+the camera than in the training recordings looks smaller than the model learned it; larger
+inputs show it at the size it was trained on.
 """
 
 from __future__ import annotations
@@ -13,7 +18,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -152,6 +157,8 @@ class OnnxSegmentor:
             file's; keys as in :data:`METADATA_KEYS`.
         providers: onnxruntime execution providers; default CUDA when available, else CPU.
         threads: intra-op threads (None: onnxruntime's default).
+        scales: factors of the model's input size (each > 0) at which every image is segmented;
+            the probabilities are averaged. ``(1.0,)``: the input size alone.
     """
 
     def __init__(
@@ -161,12 +168,18 @@ class OnnxSegmentor:
         overrides: Mapping[str, object] | None = None,
         providers: Sequence[str] | None = None,
         threads: int | None = None,
+        scales: Sequence[float] = (1.0,),
     ) -> None:
         import onnxruntime as ort
 
         self.path = Path(path)
         if not self.path.is_file():
             raise ModelFileError(f"{self.path}: no such ONNX file")
+        self.scales = tuple(float(x) for x in scales)
+        if not self.scales or not all(np.isfinite(x) and x > 0 for x in self.scales):
+            raise ModelFileError(
+                f"{self.path}: scales must be one or more positive factors, got {list(scales)}"
+            )
         opts = ort.SessionOptions()
         if threads:
             opts.intra_op_num_threads = threads
@@ -192,6 +205,21 @@ class OnnxSegmentor:
                 f"{self.path}: metadata says {self.meta.in_channels} input channels but the graph "
                 f"takes {channels}"
             )
+        fixed = [d for d in inp.shape[2:] if isinstance(d, int)]
+        if fixed and self.sizes() != [(self.meta.input_height, self.meta.input_width)]:
+            raise ModelFileError(
+                f"{self.path}: the graph's input size is fixed ({inp.shape[2:]}); "
+                f"scales={list(self.scales)} needs a model exported with dynamic height and width"
+            )
+
+    def sizes(self) -> list[tuple[int, int]]:
+        """Input sizes ``(h, w)`` px, one per scale: the model's own size at 1, else its size
+        times the scale rounded to the nearest even number of pixels."""
+        h, w = self.meta.input_height, self.meta.input_width
+        return [
+            (h, w) if s == 1.0 else (max(2, 2 * round(h * s / 2)), max(2, 2 * round(w * s / 2)))
+            for s in self.scales
+        ]
 
     @property
     def in_channels(self) -> int:
@@ -215,6 +243,8 @@ class OnnxSegmentor:
             prior: in-context prior ``[N,H,W]`` in [0,1] (silhouette rendered at the current pose
                 estimate), used by 4-channel models; None means a zero prior.
             batch_size: images per onnxruntime call.
+
+        With several ``scales`` the probabilities are the mean over the input sizes.
         """
         images = np.asarray(images)
         if images.ndim == 3:
@@ -229,13 +259,17 @@ class OnnxSegmentor:
             if self.meta.in_channels == 3:
                 log.debug("%s is a 3-channel model: the prior is ignored", self.path.name)
         n, h, w = images.shape[:3]
-        out = np.empty((n, h, w), np.float32)
-        for s in range(0, n, batch_size):
-            sl = slice(s, min(n, s + batch_size))
-            x = preprocess(images[sl], self.meta, None if prior is None else prior[sl])
-            probs = _sigmoid(self.logits(x)[:, 0])
-            for i, p in enumerate(probs):
-                out[s + i] = cv2.resize(p, (w, h), interpolation=cv2.INTER_LINEAR)
+        out = np.zeros((n, h, w), np.float32)
+        for size in self.sizes():
+            meta = replace(self.meta, input_height=size[0], input_width=size[1])
+            for s in range(0, n, batch_size):
+                sl = slice(s, min(n, s + batch_size))
+                x = preprocess(images[sl], meta, None if prior is None else prior[sl])
+                probs = _sigmoid(self.logits(x)[:, 0])
+                for i, p in enumerate(probs):
+                    out[s + i] += cv2.resize(p, (w, h), interpolation=cv2.INTER_LINEAR)
+        if len(self.scales) > 1:
+            out /= len(self.scales)
         return out
 
     def predict_mask(self, images: np.ndarray, prior: np.ndarray | None = None) -> np.ndarray:
