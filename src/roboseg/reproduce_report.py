@@ -587,14 +587,19 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
     add("\n## Localisation of the draped test recording\n")
     loc = read_json(out / "metrics" / "localisation.json")
     chosen = cfg.localise[str(cfg.recipe)]
+    added = " ".join(f"`{o}`" for o in cfg.register.get("draped_overrides", [])) or "none"
     add(
         f"SDR with the 3-channel model `{chosen.sdr}`, SDR with in-context prior with the "
         f"4-channel model `{chosen.sdr_prior}`, {cfg.register.configs} stereo configurations "
         "from the draped phase, each robot on its own: the masks contain both robots, so each "
         "fit is refined on the pixels near its own estimate, and refitted without the other "
         "robot's pixels when the other robot's joints explain it better "
-        "(`other_robots_margin`). Errors against the simulator's `/tf_static` at every link "
-        "origin over every draped frame. For scale, the paper's two-robot clinical recording "
+        f"(`other_robots_margin`). Settings added to these registrations: {added}"
+        + (" (`model_scales`: each image segmented at these multiples of the model's input "
+           "size, probabilities averaged; the test robots stand farther from the camera than "
+           "in the training sessions and look smaller)" if "model_scales" in added else "")
+        + ". Errors against the simulator's `/tf_static` at every link origin over every draped "
+        "frame. For scale, the paper's two-robot clinical recording "
         "(camera wall-mounted 2.6 m from the robots' bases, error as the deviation from the "
         "undraped localisation) ended at medians of 9.6 / 3.9 mm at the base (L0) and "
         "23.4 / 16.6 mm at the end effector with SDR / SDR with prior; its 1.3-4.8 mm at the "
