@@ -355,8 +355,9 @@ def run(cfg: DictConfig) -> Path:
         reg = register(recording, robot, segmentor=segmentor, config=reg_cfg)
         model = str(Path(str(cfg.model_file)).resolve())
         described: dict[str, Any] = {"kind": "model"}
-        if segmentor.scales != (1.0,):
-            described["scales"] = list(segmentor.scales)
+        scales = tuple(getattr(segmentor, "scales", (1.0,)))
+        if scales != (1.0,):
+            described["scales"] = list(scales)
 
         def first_masks(frame: Any) -> tuple[np.ndarray, np.ndarray]:
             probs = segmentor.predict(np.stack([frame.left, frame.right]))
