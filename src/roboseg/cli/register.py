@@ -348,16 +348,14 @@ def run(cfg: DictConfig) -> Path:
             )
         from roboseg.segmentor import OnnxSegmentor
 
-        segmentor = OnnxSegmentor(
-            str(cfg.model_file), threads=int(cfg.threads), scales=_scales(cfg.get("model_scales"))
-        )
+        scales = _scales(cfg.get("model_scales"))
+        segmentor = OnnxSegmentor(str(cfg.model_file), threads=int(cfg.threads), scales=scales)
         robot = load_robot(None if urdf is None else str(urdf))
         reg = register(recording, robot, segmentor=segmentor, config=reg_cfg)
         model = str(Path(str(cfg.model_file)).resolve())
         described: dict[str, Any] = {"kind": "model"}
-        scales = tuple(getattr(segmentor, "scales", (1.0,)))
-        if scales != (1.0,):
-            described["scales"] = list(scales)
+        if scales != [1.0]:
+            described["scales"] = scales
 
         def first_masks(frame: Any) -> tuple[np.ndarray, np.ndarray]:
             probs = segmentor.predict(np.stack([frame.left, frame.right]))

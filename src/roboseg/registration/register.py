@@ -355,6 +355,9 @@ class _Fitter:
         self.verts = fine.posed_vertices(q)
         self.margins = margins
         self.notes: list[str] = []  # what the fits did besides fitting, for the warnings
+        # several robots: the term-free first fit of the current call, shared by the fit with
+        # the disparity term and its retry without it (same masks, starts and settings)
+        self._first: tuple[SDRConfig, RegistrationResult] | None = None
 
     def silhouettes(
         self, T_cam_base: np.ndarray, q: torch.Tensor | None = None
@@ -368,6 +371,7 @@ class _Fitter:
         self, masks: list[np.ndarray], seconds: dict[str, float]
     ) -> tuple[RegistrationResult, list[np.ndarray], Any]:
         cfg = self.cfg
+        self._first = None
         t1 = time.perf_counter()
         roi_views, roi_masks = crop_to_masks(self.views, masks, cfg.roi_margin)
         log.info("region of interest: %s", [(v.name, v.width, v.height) for v in roi_views])
@@ -418,7 +422,10 @@ class _Fitter:
             return self._sdr(roi_views, roi_masks, starts, sdr_cfg), masks
         # the centroid disparity of masks holding other robots or clutter is not this robot's:
         # the first fit goes without the term, the refit on the estimate's own pixels with it
-        res = self._sdr(roi_views, roi_masks, starts, replace(sdr_cfg, disparity_weight=0.0))
+        plain = replace(sdr_cfg, disparity_weight=0.0)
+        if self._first is None or self._first[0] != plain:
+            self._first = (plain, self._sdr(roi_views, roi_masks, starts, plain))
+        res = self._first[1]
         if res.reason != "diverged":
             return refit_on_own_pixels(
                 self.verts, self.fine.faces, self.views, masks, res,
