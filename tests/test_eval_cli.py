@@ -198,3 +198,36 @@ def test_phase_keeps_draped_or_undraped_frames(dataset: Path, models: dict[str, 
     with pytest.raises(SystemExit):
         run(eval_cfg(models=f"[{models['onnx4']}]", **{"data.root": dataset},
                      out=tmp_path / "bad", phase="wet", progress="false"))
+
+
+def test_scales_average_the_models_probabilities(dataset: Path, models: dict[str, Path],
+                                                 tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture) -> None:
+    from roboseg.segmentor import OnnxSegmentor
+
+    scales = [1.0, 2.0]
+    ious = {}
+    for name, s in (("one", "[1.0]"), ("two", "[1.0,2.0]")):
+        out = tmp_path / name
+        run(eval_cfg(models=f"[{models['onnx4']},{models['ckpt4']}]",
+                     **{"data.root": dataset}, out=out, scales=s, progress="false",
+                     figure_frames=1))
+        ious[name] = {(r["model"], r["prior"], r["stamp"]): float(r["iou"])
+                      for r in read_csv(out / "per_frame_iou.csv")}
+    assert "[1.0, 2.0] x the model's input size" in capsys.readouterr().out
+    # what the registration runtime's multi-scale segmentor draws, scored against the labels
+    seg = OnnxSegmentor(models["onnx4"], scales=scales)
+    files = split_recordings(load_manifest(dataset), dataset, "test")
+    for frame in iter_frames(files):
+        pred = seg.predict(frame.image)[0] > seg.meta.threshold
+        key = ("four.onnx", "zero", str(frame.stamp_ns))
+        assert ious["two"][key] == pytest.approx(binary_iou(pred, frame.target), abs=1e-6)
+        # the checkpoint is run at the same sizes
+        assert ious["two"][("four.ckpt", "zero", key[2])] == pytest.approx(
+            ious["two"][key], abs=0.01)
+    assert any(abs(ious["two"][k] - ious["one"][k]) > 1e-4 for k in ious["one"])
+    for bad in ("[0]", "[x]"):
+        with pytest.raises(SystemExit):
+            run(eval_cfg(models=f"[{models['onnx4']}]", **{"data.root": dataset},
+                         out=tmp_path / "bad", scales=bad, progress="false"))
+        assert "scales" in capsys.readouterr().err

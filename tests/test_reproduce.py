@@ -79,7 +79,7 @@ def test_reproduce_tiny_study_then_resume(tmp_path: Path) -> None:
     assert len(markers) == n_stages
     for stage in ("simulate_lab_train_00", "train_bootstrap", "export_bootstrap",
                   "register_undraped_or_test_00_robot_1", "annotate_full_or_val_00",
-                  "annotation_quality", "train_m4", "export_m4", "evaluate",
+                  "annotation_quality", "train_m4", "export_m4", "evaluate", "evaluate_scales",
                   "register_draped_sdr_prior_robot_0", "track", "bench_echo"):
         assert f".{stage}.done" in markers
     assert f"[{n_stages}/{n_stages}" in proc.stdout and "total time:" in proc.stdout
@@ -111,6 +111,9 @@ def test_reproduce_tiny_study_then_resume(tmp_path: Path) -> None:
     assert "comes from simulated recordings" in page and "SAM 2" in page
     assert "and the lab bootstrap's training recordings (`lab.in_training`)" in page
     assert "figure 42.0 ms" in page and "logical cores" in page
+    # the IoU table again at the draped registrations' scales, which the page names
+    assert "segmented at 1.25, 1.5, 2 times the model's input size" in page
+    assert "`model_scales=[1.25,1.5,2.0]`" in page
     assert "plot: bench/p.png" in page  # what a bench prints names paths from the project root
     figures = tmp_path / "docs" / "results"
     for name in ("localisation.png", "breathing.png", "qualitative_m3.png"):
@@ -348,6 +351,10 @@ def test_undraped_segmentor_chooses_the_bootstrap_or_none(
     # undraped.overrides, replaced by this test's); the far test robots are segmented larger
     assert draped[-2:] == ["sdr.disparity_weight=1.0", "model_scales=[1.25,1.5,2.0]"]
     assert not any(a.startswith(("sdr.disparity_weight", "model_scales")) for a in argv)
+    # the models are evaluated at the input size and at the draped registrations' scales
+    assert "scales=[1.25,1.5,2.0]" in plan["evaluate_scales"].argv
+    assert "out=" + str(tmp_path / "eval_scales") in plan["evaluate_scales"].argv
+    assert not any(a.startswith("scales=") for a in plan["evaluate"].argv)
     # the operating-room recordings are sessions of one site; lab recordings random rooms
     assert "site=1" in plan["simulate_or_val_00"].argv
     # the operating room at its own size (960×540), the lab at every recording's (480×270)

@@ -357,6 +357,33 @@ def _register_argv(
     ]
 
 
+def draped_scales(cfg: DictConfig) -> list[float]:
+    """``register.draped_scales`` of ``cfg``: the factors of the models' input size at which the
+    draped test recording is segmented (its registrations' ``model_scales``, and a second
+    evaluation); ``[1.0]`` when unset."""
+    value = cfg.register.get("draped_scales") or [1.0]
+    try:
+        scales = [float(x) for x in value]
+    except (TypeError, ValueError):
+        raise SystemExit(f"register.draped_scales={value}: expected a list of numbers") from None
+    if not all(x > 0 for x in scales):
+        raise SystemExit(f"register.draped_scales={value}: factors must be > 0")
+    return scales
+
+
+def draped_settings(cfg: DictConfig) -> list[str]:
+    """roboseg-register overrides added for the draped test registrations:
+    ``register.draped_overrides`` and ``model_scales`` from ``register.draped_scales``."""
+    scales = draped_scales(cfg)
+    return [*cfg.register.get("draped_overrides", []),
+            *([f"model_scales={hydra_list(scales)}"] if scales != [1.0] else [])]
+
+
+def hydra_list(values: Sequence[float]) -> str:
+    """A Hydra list override's value: ``[1.25,1.5,2.0]``."""
+    return "[" + ",".join(repr(float(v)) for v in values) + "]"
+
+
 def undraped_segmentor(cfg: DictConfig) -> str:
     """``undraped.segmentor`` of ``cfg``: ``model`` (the lab bootstrap) or ``motion``."""
     kind = str(cfg.undraped.segmentor)
@@ -511,11 +538,18 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
             layout.onnx(m.name),
         )
     models = ",".join(str(layout.onnx(m.name)) for m in layout.models)
-    steps.append(Step("evaluate", [
-        script("roboseg-eval"), f"models=[{models}]", f"data.root={layout.dataset(subsets[0])}",
-        f"out={layout.out / 'eval'}", f"labels={cfg.evaluate.labels}", "progress=false",
-        f"threads={int(cfg.threads)}", *cfg.evaluate.overrides,
-    ]))
+    scales = draped_scales(cfg)
+    evaluations = [("evaluate", "eval", [])]
+    if scales != [1.0]:
+        # the same models at the scales the draped registrations segment with
+        evaluations.append(("evaluate_scales", "eval_scales", [f"scales={hydra_list(scales)}"]))
+    for name, folder, extra in evaluations:
+        steps.append(Step(name, [
+            script("roboseg-eval"), f"models=[{models}]",
+            f"data.root={layout.dataset(subsets[0])}", f"out={layout.out / folder}",
+            f"labels={cfg.evaluate.labels}", "progress=false", f"threads={int(cfg.threads)}",
+            *extra, *cfg.evaluate.overrides,
+        ]))
 
     # 4. the draped test recording: SDR (3 channels) and SDR with prior (4 channels)
     chosen = cfg.localise[str(cfg.recipe)]
@@ -526,7 +560,7 @@ def build_plan(cfg: DictConfig, layout: Layout) -> list[Step]:
                 _register_argv(cfg, layout.test, layout.recording(layout.test),
                                layout.onnx(str(chosen[method])), method, "draped", robot,
                                layout.draped_pose(method, robot).parent,
-                               cfg.register.get("draped_overrides", [])),
+                               draped_settings(cfg)),
                 tolerant=True,
                 parallel=True,
             ))

@@ -456,7 +456,13 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
         f"page written {today()} on {machine_description()}.\n"
     )
     add("## At a glance\n")
-    from roboseg.reproduce import lab_in_training, model_init, undraped_segmentor
+    from roboseg.reproduce import (
+        draped_scales,
+        draped_settings,
+        lab_in_training,
+        model_init,
+        undraped_segmentor,
+    )
 
     segmentor = undraped_segmentor(cfg)
     glance = at_a_glance(
@@ -572,6 +578,14 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
         "labels).\n"
     )
     add(table.read_text() if table.is_file() else "_not evaluated_\n")
+    scaled = out / "eval_scales" / "iou_table.md"
+    if draped_scales(cfg) != [1.0] and scaled.is_file():
+        add(
+            "\nThe same models and frames, each image segmented at "
+            f"{', '.join(f'{x:g}' for x in draped_scales(cfg))} times the model's input size and "
+            "the probabilities averaged, as the draped test registrations below segment them "
+            "(`register.draped_scales`):\n\n" + scaled.read_text()
+        )
     add("\n" + md_table(
         ["model", "experiment", "overrides", "val IoU"],
         [[m.name, m.experiment, " ".join(f"`{o}`" for o in m.overrides) or "-",
@@ -587,7 +601,7 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
     add("\n## Localisation of the draped test recording\n")
     loc = read_json(out / "metrics" / "localisation.json")
     chosen = cfg.localise[str(cfg.recipe)]
-    added = " ".join(f"`{o}`" for o in cfg.register.get("draped_overrides", [])) or "none"
+    added = " ".join(f"`{o}`" for o in draped_settings(cfg)) or "none"
     add(
         f"SDR with the 3-channel model `{chosen.sdr}`, SDR with in-context prior with the "
         f"4-channel model `{chosen.sdr_prior}`, {cfg.register.configs} stereo configurations "

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -148,6 +148,58 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
     return 0.5 * (1.0 + np.tanh(0.5 * x))  # overflow-free logistic
 
 
+def scaled_sizes(meta: SegmentorMeta, scales: Sequence[float]) -> list[tuple[int, int]]:
+    """Input sizes ``(h, w)`` px, one per scale: the model's own size at 1, else its size times
+    the scale rounded to the nearest even number of pixels."""
+    h, w = meta.input_height, meta.input_width
+    return [
+        (h, w) if s == 1.0 else (max(2, 2 * round(h * s / 2)), max(2, 2 * round(w * s / 2)))
+        for s in scales
+    ]
+
+
+def check_scales(scales: Sequence[float], source: str) -> tuple[float, ...]:
+    """``scales`` as a tuple of floats; :class:`ModelFileError` naming ``source`` unless every
+    factor is finite and > 0 and there is at least one."""
+    try:
+        out = tuple(float(x) for x in scales)
+    except (TypeError, ValueError) as exc:
+        raise ModelFileError(f"{source}: scales must be numbers, got {scales!r}") from exc
+    if not out or not all(np.isfinite(x) and x > 0 for x in out):
+        raise ModelFileError(
+            f"{source}: scales must be one or more positive factors, got {list(scales)}"
+        )
+    return out
+
+
+def multi_scale_probs(
+    logits: Callable[[np.ndarray], np.ndarray],
+    meta: SegmentorMeta,
+    images: np.ndarray,
+    prior: np.ndarray | None = None,
+    scales: Sequence[float] = (1.0,),
+    batch_size: int = 8,
+) -> np.ndarray:
+    """Robot probabilities ``[N,H,W]`` float32 of RGB uint8 ``images`` ``[N,H,W,3]`` at their own
+    size: each batch preprocessed at the model's input size times each scale
+    (:func:`scaled_sizes`), run through ``logits`` (``[N,C,h,w]`` → ``[N,1,h,w]``), and the
+    probabilities resized back and averaged over the scales."""
+    n, h, w = images.shape[:3]
+    out = np.zeros((n, h, w), np.float32)
+    sizes = scaled_sizes(meta, scales)
+    for size in sizes:
+        sized = replace(meta, input_height=size[0], input_width=size[1])
+        for s in range(0, n, batch_size):
+            sl = slice(s, min(n, s + batch_size))
+            x = preprocess(images[sl], sized, None if prior is None else prior[sl])
+            probs = _sigmoid(logits(x)[:, 0])
+            for i, p in enumerate(probs):
+                out[s + i] += cv2.resize(p, (w, h), interpolation=cv2.INTER_LINEAR)
+    if len(sizes) > 1:
+        out /= len(sizes)
+    return out
+
+
 class OnnxSegmentor:
     """Robot segmentation with an exported roboseg ONNX model (onnxruntime, CPU by default).
 
@@ -175,11 +227,7 @@ class OnnxSegmentor:
         self.path = Path(path)
         if not self.path.is_file():
             raise ModelFileError(f"{self.path}: no such ONNX file")
-        self.scales = tuple(float(x) for x in scales)
-        if not self.scales or not all(np.isfinite(x) and x > 0 for x in self.scales):
-            raise ModelFileError(
-                f"{self.path}: scales must be one or more positive factors, got {list(scales)}"
-            )
+        self.scales = check_scales(scales, str(self.path))
         opts = ort.SessionOptions()
         if threads:
             opts.intra_op_num_threads = threads
@@ -215,11 +263,7 @@ class OnnxSegmentor:
     def sizes(self) -> list[tuple[int, int]]:
         """Input sizes ``(h, w)`` px, one per scale: the model's own size at 1, else its size
         times the scale rounded to the nearest even number of pixels."""
-        h, w = self.meta.input_height, self.meta.input_width
-        return [
-            (h, w) if s == 1.0 else (max(2, 2 * round(h * s / 2)), max(2, 2 * round(w * s / 2)))
-            for s in self.scales
-        ]
+        return scaled_sizes(self.meta, self.scales)
 
     @property
     def in_channels(self) -> int:
@@ -258,19 +302,7 @@ class OnnxSegmentor:
                 )
             if self.meta.in_channels == 3:
                 log.debug("%s is a 3-channel model: the prior is ignored", self.path.name)
-        n, h, w = images.shape[:3]
-        out = np.zeros((n, h, w), np.float32)
-        for size in self.sizes():
-            meta = replace(self.meta, input_height=size[0], input_width=size[1])
-            for s in range(0, n, batch_size):
-                sl = slice(s, min(n, s + batch_size))
-                x = preprocess(images[sl], meta, None if prior is None else prior[sl])
-                probs = _sigmoid(self.logits(x)[:, 0])
-                for i, p in enumerate(probs):
-                    out[s + i] += cv2.resize(p, (w, h), interpolation=cv2.INTER_LINEAR)
-        if len(self.scales) > 1:
-            out /= len(self.scales)
-        return out
+        return multi_scale_probs(self.logits, self.meta, images, prior, self.scales, batch_size)
 
     def predict_mask(self, images: np.ndarray, prior: np.ndarray | None = None) -> np.ndarray:
         """Binary robot masks ``[N,H,W]`` (probability above the model's threshold)."""

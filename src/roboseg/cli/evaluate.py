@@ -14,7 +14,7 @@ import hydra
 import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from roboseg.cli._main import user_errors_exit
+from roboseg.cli._main import parse_scales, user_errors_exit
 from roboseg.config import CONF_DIR
 from roboseg.errors import RobosegError
 from roboseg.evaluation.metrics import TableRow, table_markdown
@@ -76,11 +76,15 @@ def run(cfg: DictConfig) -> list[TableRow]:
         source_size=None if train_size is None else (int(train_size[0]), int(train_size[1])),
         progress=bool(cfg.progress),
         phase=str(cfg.phase),
+        scales=parse_scales(cfg.get("scales"), "scales"),
     )
     print(table_markdown(rows), end="")
     for r in rows:
         prior = "" if r.prior == "-" else f" ({r.prior} prior)"
         print(f"{r.model}{prior}: IoU {r.iou_mean:.4f} ± {r.iou_std:.4f} over {len(r.ious)} frames")
+    scales = parse_scales(cfg.get("scales"), "scales")
+    if scales != [1.0]:
+        print(f"each image segmented at {scales} x the model's input size, probabilities averaged")
     print(f"written to {cfg.out}/ (iou_table.md, iou_table.csv, per_frame_iou.csv, "
           "error_bands.md, figures)")
     return rows

@@ -28,9 +28,9 @@ import hydra
 import numpy as np
 import torch
 import yaml
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
-from roboseg.cli._main import user_errors_exit
+from roboseg.cli._main import parse_scales, user_errors_exit
 from roboseg.config import CONF_DIR
 from roboseg.errors import (
     CameraError,
@@ -314,17 +314,6 @@ def self_training_from_cfg(cfg: DictConfig) -> tuple[Any, bool] | None:
         raise SelfTrainingError(f"self_training: invalid setting ({exc})") from exc
 
 
-def _scales(value: Any) -> list[float]:
-    """``model_scales`` as a list of floats (one number or a list; null: ``[1.0]``)."""
-    if value is None:
-        return [1.0]
-    items = list(value) if isinstance(value, (list, tuple, ListConfig)) else [value]
-    try:
-        return [float(x) for x in items]
-    except (TypeError, ValueError) as exc:
-        raise ModelFileError(f"model_scales: expected numbers, got {value!r}") from exc
-
-
 @user_errors_exit
 def run(cfg: DictConfig) -> Path:
     """Register as ``cfg`` says; write the outputs; return the pose.yaml path."""
@@ -348,7 +337,7 @@ def run(cfg: DictConfig) -> Path:
             )
         from roboseg.segmentor import OnnxSegmentor
 
-        scales = _scales(cfg.get("model_scales"))
+        scales = parse_scales(cfg.get("model_scales"), "model_scales")
         segmentor = OnnxSegmentor(str(cfg.model_file), threads=int(cfg.threads), scales=scales)
         robot = load_robot(None if urdf is None else str(urdf))
         reg = register(recording, robot, segmentor=segmentor, config=reg_cfg)

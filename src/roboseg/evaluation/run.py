@@ -4,7 +4,9 @@ qualitative figures.
 Every model, ONNX file or Lightning checkpoint, goes through the same path:
 :func:`roboseg.segmentor.preprocess` (anisotropic resize to the model's input size, normalisation,
 prior channel) → logits → sigmoid → bilinear resize back to the image size → threshold. So the
-numbers of a checkpoint and of its export are comparable.
+numbers of a checkpoint and of its export are comparable. With ``scales`` every image is segmented
+at those multiples of the model's input size and the probabilities averaged, as the registration
+runtime's ``model_scales`` does.
 
 4-channel models are evaluated twice: with a zero prior and with the in-context prior, the union of
 the robots' silhouettes rendered at poses perturbed like in training
@@ -23,7 +25,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
-import cv2
 import numpy as np
 import torch
 
@@ -36,7 +37,7 @@ from roboseg.evaluation.metrics import (
     qualitative_figure,
 )
 from roboseg.recording.topics import ROBOT_MASK, ROBOT_MASK_GT
-from roboseg.segmentor import SegmentorMeta, _sigmoid, preprocess
+from roboseg.segmentor import SegmentorMeta, check_scales, multi_scale_probs
 
 log = logging.getLogger(__name__)
 
@@ -227,26 +228,37 @@ class CheckpointModel:
             return self.net(torch.from_numpy(np.ascontiguousarray(x, np.float32))).numpy()
 
 
-def load_model(path: str | Path, overrides: Mapping[str, object] | None = None) -> EvalModel:
-    """An ``.onnx`` file (metadata ``overrides`` allowed) or a ``.ckpt`` Lightning checkpoint."""
+def load_model(
+    path: str | Path,
+    overrides: Mapping[str, object] | None = None,
+    scales: Sequence[float] = (1.0,),
+) -> EvalModel:
+    """An ``.onnx`` file (metadata ``overrides`` allowed) or a ``.ckpt`` Lightning checkpoint.
+    ``scales`` other than ``(1.0,)`` are checked against the ONNX graph (dynamic size needed)."""
     path = Path(path)
     if not path.is_file():
         raise ModelFileError(f"model {path}: no such file")
     if path.suffix == ".ckpt":
+        check_scales(scales, str(path))
         return CheckpointModel(path)
     if path.suffix == ".onnx":
         from roboseg.segmentor import OnnxSegmentor
 
-        return OnnxSegmentor(path, overrides=overrides or None)
+        return OnnxSegmentor(path, overrides=overrides or None, scales=scales)
     raise ModelFileError(f"model {path}: expected a .onnx or .ckpt file")
 
 
-def predict_probs(model: EvalModel, image: np.ndarray, prior: np.ndarray | None) -> np.ndarray:
-    """Robot probability ``[H,W]`` of one RGB image at the image's own size."""
-    x = preprocess(image[None], model.meta, None if prior is None else prior[None])
-    probs = _sigmoid(model.logits(x)[0, 0])
-    h, w = image.shape[:2]
-    return cv2.resize(probs, (w, h), interpolation=cv2.INTER_LINEAR)
+def predict_probs(
+    model: EvalModel,
+    image: np.ndarray,
+    prior: np.ndarray | None,
+    scales: Sequence[float] = (1.0,),
+) -> np.ndarray:
+    """Robot probability ``[H,W]`` of one RGB image at the image's own size; with several
+    ``scales`` (factors of the model's input size) the mean over them."""
+    return multi_scale_probs(
+        model.logits, model.meta, image[None], None if prior is None else prior[None], scales
+    )[0]
 
 
 def runs_of(meta: SegmentorMeta) -> tuple[str, ...]:
@@ -305,6 +317,7 @@ def evaluate_models(
     source_size: tuple[int, int] | None = None,
     progress: bool = True,
     phase: str = "all",
+    scales: Sequence[float] = (1.0,),
 ) -> list[TableRow]:
     """Evaluate ``models`` on ``split`` of the annotated dataset ``root``; write ``out/``
     ``iou_table.md``, ``iou_table.csv``, ``per_frame_iou.csv``, ``error_bands.md`` (missed and
@@ -313,12 +326,13 @@ def evaluate_models(
 
     ``source_size`` ``(H, W)``: image size the models were trained from (for the aspect check).
     ``phase``: ``all`` frames, or only the ``draped`` / ``undraped`` ones (see :func:`iter_frames`).
+    ``scales``: factors of each model's input size, probabilities averaged (:func:`predict_probs`).
     """
     if phase not in PHASES:
         raise DatasetError(f"phase must be one of {PHASES}, got {phase!r}")
     manifest = load_manifest(root)
     files = split_recordings(manifest, root, split)
-    loaded = [(Path(m), load_model(m, overrides)) for m in models]
+    loaded = [(Path(m), load_model(m, overrides, scales)) for m in models]
     if not loaded:
         raise DatasetError("models: empty list; give models=[A.onnx,B.ckpt]")
     runs: list[Run] = []
@@ -349,7 +363,8 @@ def evaluate_models(
         for run in runs:
             _note_resize(run, frame.image.shape[:2], source_size, warned)
             pr = frame.prior if run.prior == "perturbed" else None
-            pred = predict_probs(run.model, frame.image, pr) > run.model.meta.threshold
+            probs = predict_probs(run.model, frame.image, pr, scales)
+            pred = probs > run.model.meta.threshold
             iou = binary_iou(pred, frame.target)
             run.ious.append(iou)
             misses, false_pos = error_bands(pred, frame.target)
