@@ -63,6 +63,7 @@ def run(cfg: DictConfig) -> list[TableRow]:
     if isinstance(figure_frames, ListConfig):
         figure_frames = [int(v) for v in figure_frames]
     overrides = OmegaConf.to_container(cfg.overrides) if cfg.overrides else None
+    scales = parse_scales(cfg.get("scales"), "scales")
     rows = evaluate_models(
         _model_list(cfg.models),
         root,
@@ -76,13 +77,12 @@ def run(cfg: DictConfig) -> list[TableRow]:
         source_size=None if train_size is None else (int(train_size[0]), int(train_size[1])),
         progress=bool(cfg.progress),
         phase=str(cfg.phase),
-        scales=parse_scales(cfg.get("scales"), "scales"),
+        scales=scales,
     )
     print(table_markdown(rows), end="")
     for r in rows:
         prior = "" if r.prior == "-" else f" ({r.prior} prior)"
         print(f"{r.model}{prior}: IoU {r.iou_mean:.4f} ± {r.iou_std:.4f} over {len(r.ious)} frames")
-    scales = parse_scales(cfg.get("scales"), "scales")
     if scales != [1.0]:
         print(f"each image segmented at {scales} x the model's input size, probabilities averaged")
     print(f"written to {cfg.out}/ (iou_table.md, iou_table.csv, per_frame_iou.csv, "
