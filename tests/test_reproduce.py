@@ -111,6 +111,8 @@ def test_reproduce_tiny_study_then_resume(tmp_path: Path) -> None:
     assert "comes from simulated recordings" in page and "SAM 2" in page
     assert "and the lab bootstrap's training recordings (`lab.in_training`)" in page
     assert "figure 42.0 ms" in page and "logical cores" in page
+    # each model's steps as trained / trainer.max_steps (steps=1 in the tiny study)
+    assert "| m3 | default | `trainer.max_steps=1` | 1/1 |" in page
     # the IoU table again at the draped registrations' scales, which the page names
     assert "segmented at 1.25, 1.5, 2 times the model's input size" in page
     assert "`model_scales=[1.25,1.5,2.0]`" in page

@@ -41,6 +41,7 @@ def test_smoke_writes_checkpoints_and_prints_val_iou(smoke: tuple[Path, Path, st
     _, run, stdout = smoke
     lines = re.findall(r"^val/iou=(\d\.\d{3})$", stdout, flags=re.M)
     assert len(lines) == 1 and 0.0 <= float(lines[0]) <= 1.0
+    assert stdout.strip().splitlines()[-2:] == ["steps=12/12", f"val/iou={lines[0]}"]
     last = torch.load(run / "checkpoints" / "last.ckpt", weights_only=True, map_location="cpu")
     assert last["global_step"] == 12
     assert (run / "checkpoints" / "best.ckpt").is_file()
@@ -58,6 +59,18 @@ def test_resume_continues_from_last_checkpoint(smoke: tuple[Path, Path, str],
     assert "resuming the training stream after 12 batches" in proc.stderr + proc.stdout
     last = torch.load(run2 / "checkpoints" / "last.ckpt", weights_only=True, map_location="cpu")
     assert last["global_step"] == 14
+
+
+def test_a_time_limit_before_max_steps_is_reported(smoke: tuple[Path, Path, str],
+                                                   tmp_path: Path) -> None:
+    data, _, _ = smoke
+    proc = _run(["experiment=smoke", f"data.root={data}", f"hydra.run.dir={tmp_path / 'run'}",
+                 "trainer.max_steps=100000", "trainer.max_time=00:00:00:02"], tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    steps = re.findall(r"^steps=(\d+)/100000$", proc.stdout, flags=re.M)
+    assert len(steps) == 1 and 0 < int(steps[0]) < 100000
+    assert "raise trainer.max_time" in proc.stdout + proc.stderr
+    assert proc.stdout.strip().splitlines()[-1].startswith("val/iou=")
 
 
 @pytest.mark.parametrize(

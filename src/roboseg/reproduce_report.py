@@ -316,8 +316,13 @@ def _stdout(logs: Path, name: str, max_lines: int = 150) -> str:
 
 def _val_iou(logs: Path, name: str) -> str:
     """The ``val/iou=`` line a training run prints last."""
+    return _printed(logs, name, "val/iou")
+
+
+def _printed(logs: Path, name: str, key: str) -> str:
+    """The value of the last ``key=`` line training run ``name`` printed (``-``: none)."""
     for line in reversed(_stdout(logs, f"train_{name}", 10_000).splitlines()):
-        if line.startswith("val/iou="):
+        if line.startswith(f"{key}="):
             return line.split("=", 1)[1]
     return "-"
 
@@ -586,10 +591,11 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
             "the probabilities averaged, as the draped test registrations below segment them "
             "(`register.draped_scales`):\n\n" + scaled.read_text()
         )
+    # steps: as trained / trainer.max_steps (fewer: trainer.max_time came first)
     add("\n" + md_table(
-        ["model", "experiment", "overrides", "val IoU"],
+        ["model", "experiment", "overrides", "steps", "val IoU"],
         [[m.name, m.experiment, " ".join(f"`{o}`" for o in m.overrides) or "-",
-          _val_iou(logs, m.name)] for m in layout.models],
+          _printed(logs, m.name, "steps"), _val_iou(logs, m.name)] for m in layout.models],
     ))
     for png in sorted((out / "eval").glob("qualitative_*.png")):
         name = copy_figure(png, figures, png.name)

@@ -81,6 +81,13 @@ def run(cfg: DictConfig) -> float:
     trainer.fit(module, datamodule=data, ckpt_path=None if ckpt_path is None else str(ckpt_path))
     if trainer.interrupted:
         raise RobosegError("training was interrupted; checkpoints so far are kept")
+    steps, wanted = int(trainer.global_step), int(trainer.max_steps)
+    if wanted > 0 and steps < wanted:
+        # a slower machine meets trainer.max_time first: a different (less trained) model
+        log.warning(
+            "stopped at step %d of trainer.max_steps=%d (trainer.max_time=%s or max_epochs came "
+            "first; the learning-rate schedule did not end): raise trainer.max_time for the "
+            "full run", steps, wanted, OmegaConf.select(cfg, "trainer.max_time", default=None))
     callback = _checkpoint_callback(trainer)
     best = ""
     if callback is not None and callback.dirpath:
@@ -96,6 +103,7 @@ def run(cfg: DictConfig) -> float:
         module = SegmentationModule.load_from_checkpoint(best, map_location="cpu")
     iou = mean_frame_iou(module.cpu(), data.val_dataloader())
     log.info("best checkpoint %s; val IoU over pooled pixels %.3f", best or "(none)", pooled)
+    print(f"steps={steps}" + (f"/{wanted}" if wanted > 0 else ""))
     print(f"val/iou={iou:.3f}")
     return iou
 
