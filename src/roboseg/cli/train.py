@@ -2,8 +2,10 @@
 
 ``roboseg-train experiment=smoke data.root=DIR hydra.run.dir=RUN [ckpt_path=RUN/checkpoints/
 last.ckpt]`` seeds everything, fits, validates the best checkpoint and writes
-``RUN/checkpoints/best.ckpt`` and ``last.ckpt`` (the final state). The last line is
-``val/iou=0.xxx``: the per-frame mean IoU of the best checkpoint over the validation frames
+``RUN/checkpoints/best.ckpt`` and ``last.ckpt`` (the final state). The last two lines are
+``steps=N/M`` (optimiser steps done / ``trainer.max_steps``: fewer when ``trainer.max_time`` came
+first, which is also logged as a warning) and ``val/iou=0.xxx``: the per-frame mean IoU of the
+best checkpoint over the validation frames
 (draped ones by default, see ``data.val_phase``; all of them, whatever
 ``trainer.limit_val_batches``), on rank zero. ``-m model=unet_mit_b0,unet_resnet18`` runs a sweep.
 """
