@@ -39,7 +39,9 @@ import yaml
 from omegaconf import DictConfig, OmegaConf
 
 from roboseg.config import CONF_DIR
+from roboseg.errors import ModelFileError
 from roboseg.pipeline import best_checkpoint, hash_split
+from roboseg.segmentor import check_scales
 from roboseg.stages import Stages, Step, preimport, script
 
 log = logging.getLogger("roboseg.reproduce")
@@ -361,14 +363,11 @@ def draped_scales(cfg: DictConfig) -> list[float]:
     """``register.draped_scales`` of ``cfg``: the factors of the models' input size at which the
     draped test recording is segmented (its registrations' ``model_scales``, and a second
     evaluation); ``[1.0]`` when unset."""
-    value = cfg.register.get("draped_scales") or [1.0]
     try:
-        scales = [float(x) for x in value]
-    except (TypeError, ValueError):
-        raise SystemExit(f"register.draped_scales={value}: expected a list of numbers") from None
-    if not all(x > 0 for x in scales):
-        raise SystemExit(f"register.draped_scales={value}: factors must be > 0")
-    return scales
+        return list(check_scales(cfg.register.get("draped_scales") or [1.0],
+                                 "register.draped_scales"))
+    except ModelFileError as exc:
+        raise SystemExit(str(exc)) from None
 
 
 def draped_settings(cfg: DictConfig) -> list[str]:

@@ -583,11 +583,12 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
         "labels).\n"
     )
     add(table.read_text() if table.is_file() else "_not evaluated_\n")
+    scales = draped_scales(cfg)
     scaled = out / "eval_scales" / "iou_table.md"
-    if draped_scales(cfg) != [1.0] and scaled.is_file():
+    if scales != [1.0] and scaled.is_file():
         add(
             "\nThe same models and frames, each image segmented at "
-            f"{', '.join(f'{x:g}' for x in draped_scales(cfg))} times the model's input size and "
+            f"{', '.join(f'{x:g}' for x in scales)} times the model's input size and "
             "the probabilities averaged, as the draped test registrations below segment them "
             "(`register.draped_scales`):\n\n" + scaled.read_text()
         )
@@ -617,7 +618,7 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
         f"(`other_robots_margin`). Settings added to these registrations: {added}"
         + (" (`model_scales`: each image segmented at these multiples of the model's input "
            "size, probabilities averaged; the test robots stand farther from the camera than "
-           "in the training sessions and look smaller)" if "model_scales" in added else "")
+           "in the training sessions and look smaller)" if scales != [1.0] else "")
         + ". Errors against the simulator's `/tf_static` at every link origin over every draped "
         "frame. For scale, the paper's two-robot clinical recording "
         "(camera wall-mounted 2.6 m from the robots' bases, error as the deviation from the "

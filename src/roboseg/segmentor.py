@@ -261,8 +261,7 @@ class OnnxSegmentor:
             )
 
     def sizes(self) -> list[tuple[int, int]]:
-        """Input sizes ``(h, w)`` px, one per scale: the model's own size at 1, else its size
-        times the scale rounded to the nearest even number of pixels."""
+        """Input sizes ``(h, w)`` px, one per scale (:func:`scaled_sizes`)."""
         return scaled_sizes(self.meta, self.scales)
 
     @property
