@@ -37,6 +37,7 @@ from bench.common import format_table  # noqa: E402
 from roboseg.config import CONF_DIR  # noqa: E402
 from roboseg.pipeline import prepare_data  # noqa: E402
 from roboseg.stages import Stages  # noqa: E402
+from roboseg.training import training_precision  # noqa: E402
 
 log = logging.getLogger("bench.learning")
 
@@ -134,8 +135,11 @@ def run_recipe(data: Path, overrides: list[str], budget: float, val_every: int,
     pl.seed_everything(seed, workers=True)
     batch = int(cfg.data.batch_size)
     curve = Curve(budget)
+    # the recipe's precision (bf16 only where the CPU has it natively, as roboseg-train does)
+    precision = training_precision(str(cfg.trainer.precision), "cpu")
     trainer = pl.Trainer(
-        accelerator="cpu", devices=1, max_steps=int(cfg.trainer.max_steps), max_time=None,
+        accelerator="cpu", devices=1, precision=precision,  # type: ignore[arg-type]
+        max_steps=int(cfg.trainer.max_steps), max_time=None,
         max_epochs=-1,
         val_check_interval=val_every, check_val_every_n_epoch=None,
         limit_val_batches=max(1, val_frames // batch), num_sanity_val_steps=0,
@@ -149,7 +153,8 @@ def run_recipe(data: Path, overrides: list[str], budget: float, val_every: int,
     trainer.validate(module, datamodule=dm, verbose=False)
     iou = float(trainer.callback_metrics.get("val/iou", float("nan")))
     curve.points.append((round(curve.seconds, 1), int(trainer.global_step), round(iou, 4)))
-    return {"overrides": overrides, "points": curve.points, "steps": int(trainer.global_step),
+    return {"overrides": overrides, "precision": precision, "points": curve.points,
+            "steps": int(trainer.global_step),
             "s_per_step": curve.seconds / max(1, trainer.global_step - 1), "wall": wall}
 
 
@@ -217,10 +222,12 @@ def main(argv: list[str] | None = None) -> int:
     for study, recipes in results.items():
         for name, res in recipes.items():
             best = max(p[2] for p in res["points"])
-            rows.append([study, name, f"{res['s_per_step']:.2f}", res["steps"],
+            # curves stored before the precision was recorded ran in float32
+            rows.append([study, name, res.get("precision", "32-true"),
+                         f"{res['s_per_step']:.2f}", res["steps"],
                          *("-" if (v := iou_at(res["points"], t)) is None else f"{v:.2f}"
                            for t in REPORT_AT), f"{best:.2f}"])
-    print(format_table(["study", "recipe", "s/step", "steps",
+    print(format_table(["study", "recipe", "precision", "s/step", "steps",
                         *(f"{t} s" for t in REPORT_AT), "best"], rows))
     plot(results, args.out / "learning_curves.png")
     print(f"curves: {store}\nplot:   {args.out / 'learning_curves.png'}")

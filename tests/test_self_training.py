@@ -29,6 +29,7 @@ from roboseg.registration.self_training import (
     PredictedMasks,
     SelfTrainingConfig,
     SelfTrainingError,
+    _trainer,
     grabcut_masks,
     kept_round,
     pose_change,
@@ -98,6 +99,18 @@ def test_config_errors_name_the_setting(tmp_path: Path) -> None:
     missing = tmp_path / "nope.ckpt"
     with pytest.raises(ModelFileError, match=f"self_training.init_ckpt: no such file {missing}"):
         SelfTrainingConfig(rounds=1, init_ckpt=str(missing))
+
+
+def test_fine_tuning_trains_in_float32_where_the_cpu_has_no_bf16(monkeypatch, caplog) -> None:
+    import roboseg.training
+
+    cfg = SelfTrainingConfig(precision="bf16-mixed")
+    monkeypatch.setattr(roboseg.training, "cpu_bf16_native", lambda: False)
+    with caplog.at_level("WARNING"):
+        assert _trainer(cfg, 3).precision == "32-true"
+    assert "self_training.precision=bf16-mixed" in caplog.text
+    monkeypatch.setattr(roboseg.training, "cpu_bf16_native", lambda: True)
+    assert _trainer(cfg, 3).precision == "bf16-mixed"
 
 
 def test_build_module_starts_from_a_checkpoint(tmp_path: Path) -> None:

@@ -12,7 +12,8 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from roboseg.cli.train import run
+import roboseg.training
+from roboseg.cli.train import _fall_back_from_slow_bf16, run
 from roboseg.config import CONF_DIR
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -121,3 +122,24 @@ def test_ddp_sim_sees_every_training_frame_once_per_epoch(
     assert {rank for rank, _ in epoch0} == {0, 1}
     assert sorted(indices) == list(range(20))  # 2 recordings x 10 frames, each exactly once
     assert {i for r, i in epoch0 if r == 0}.isdisjoint({i for r, i in epoch0 if r == 1})
+
+
+@pytest.mark.parametrize(("native", "fallback", "expected"), [
+    (False, True, "32-true"), (False, False, "bf16-mixed"), (True, True, "bf16-mixed")])
+def test_default_recipe_trains_in_float32_where_the_cpu_has_no_bf16(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, native: bool,
+        fallback: bool, expected: str) -> None:
+    """make train's recipe asks for bf16-mixed; on a CPU without native bfloat16 (15-20x slower
+    there) it trains in float32 and says so, unless bf16_fallback=false."""
+    monkeypatch.setattr(roboseg.training, "cpu_bf16_native", lambda: native)
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose("train", overrides=["experiment=default", "data.root=x",
+                                          f"bf16_fallback={str(fallback).lower()}"])
+    assert cfg.trainer.precision == "bf16-mixed"
+    with caplog.at_level("WARNING", logger="roboseg.train"):
+        _fall_back_from_slow_bf16(cfg)
+    assert cfg.trainer.precision == expected
+    warned = "no native bfloat16" in caplog.text
+    assert warned == (expected != "bf16-mixed")
+    if warned:
+        assert "trainer.precision=bf16-mixed" in caplog.text and "32-true" in caplog.text

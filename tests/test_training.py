@@ -16,7 +16,12 @@ from roboseg.augment import AugmentationPipeline
 from roboseg.config import CONF_DIR
 from roboseg.errors import DatasetError, ModelFileError
 from roboseg.models import PRESETS, build_unet
-from roboseg.training import NonFiniteLossError, SegmentationModule, lr_factor
+from roboseg.training import (
+    NonFiniteLossError,
+    SegmentationModule,
+    lr_factor,
+    training_precision,
+)
 
 SIZE = 64
 EXPERIMENTS = [
@@ -341,3 +346,23 @@ def test_channels_last_bf16_training_learns_and_exports_in_the_usual_layout(tmp_
     assert last < 0.7 * first, (first, last)
     weight = module.net.encoder.conv1.weight
     assert weight.is_contiguous() and not weight.is_contiguous(memory_format=torch.channels_last)
+
+
+@pytest.mark.parametrize(("asked", "accelerator", "native", "expected"), [
+    ("bf16-mixed", "cpu", False, "32-true"),   # no native bfloat16: float32
+    ("bf16-true", "cpu", False, "32-true"),
+    ("bf16-mixed", "cpu", True, "bf16-mixed"),  # native: as asked
+    ("32-true", "cpu", False, "32-true"),
+    ("16-mixed", "cpu", False, "16-mixed"),     # only bfloat16 is redirected
+    ("bf16-mixed", "gpu", False, "bf16-mixed"),  # a GPU's precision is not the CPU's business
+])
+def test_training_precision_keeps_bf16_only_where_the_cpu_has_it(asked, accelerator, native,
+                                                                 expected):
+    assert training_precision(asked, accelerator, bf16_native=native) == expected
+
+
+def test_training_precision_auto_is_the_cpu_without_cuda(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert training_precision("bf16-mixed", "auto", bf16_native=False) == "32-true"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert training_precision("bf16-mixed", "auto", bf16_native=False) == "bf16-mixed"

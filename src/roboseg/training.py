@@ -63,6 +63,33 @@ def lr_factor(
     return warm * (final + (1 - final) * 0.5 * (1 + math.cos(math.pi * progress)))
 
 
+def cpu_bf16_native() -> bool:
+    """Whether this CPU runs bfloat16 arithmetic at speed, as oneDNN (PyTorch's CPU kernels)
+    reports it: x86 with AVX-512, aarch64 with its bf16 extension. Without it bf16 autocast
+    converts every operand and training crawls: MIT-B0 at 8 windows of 144×256 took 5.6-6.9 s a
+    step against 0.35-0.37 s in float32 on an AVX2-only EPYC. ``True`` where torch cannot tell."""
+    probe = getattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", None)
+    try:
+        return bool(probe()) if probe is not None else True
+    except (RuntimeError, AttributeError):
+        return True
+
+
+def training_precision(
+    precision: str, accelerator: str = "cpu", bf16_native: bool | None = None
+) -> str:
+    """The Lightning ``precision`` to train with: ``precision`` itself, except a bfloat16 one
+    (``bf16-mixed``, ``bf16-true``) on a CPU without native bfloat16 (``bf16_native``; ``None``:
+    :func:`cpu_bf16_native`), which becomes ``32-true``. ``accelerator`` ``auto`` counts as the
+    CPU when CUDA is not available."""
+    precision = str(precision)
+    on_cpu = accelerator == "cpu" or (accelerator == "auto" and not torch.cuda.is_available())
+    if not precision.startswith("bf16") or not on_cpu:
+        return precision
+    native = cpu_bf16_native() if bf16_native is None else bf16_native
+    return precision if native else "32-true"
+
+
 def per_frame_iou(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """IoU ``[B]`` of boolean masks ``[B, ...]``; a frame where both are empty scores 1."""
     pred, target = pred.flatten(1).bool(), target.flatten(1).bool()
