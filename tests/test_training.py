@@ -324,7 +324,8 @@ def test_per_frame_iou_hand_values():
 
 
 def test_channels_last_bf16_training_learns_and_exports_in_the_usual_layout(tmp_path):
-    """The CPU fast path (NHWC + bf16 autocast): the loss still falls, the loss is float32, and
+    """The CPU fast path (NHWC + bf16 autocast where the CPU has native bf16, float32 where not:
+    emulated bf16 made this test take 60 s): the loss still falls, the loss is float32, and
     after fit the weights are back in the contiguous layout the exporter and runtime expect."""
     rec = Recorder()
     module = small_module(channels_last=True)
@@ -339,7 +340,8 @@ def test_channels_last_bf16_training_learns_and_exports_in_the_usual_layout(tmp_
         def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
             seen["loss_dtype"] = outputs["loss"].dtype
 
-    t = trainer(tmp_path, 30, [rec, Probe()], precision="bf16-mixed", limit_val_batches=0)
+    precision = training_precision("bf16-mixed", "cpu")
+    t = trainer(tmp_path, 30, [rec, Probe()], precision=precision, limit_val_batches=0)
     t.fit(module, datamodule=SquaresData())
     assert seen == {"input_nhwc": True, "weights_nhwc": True, "loss_dtype": torch.float32}
     first, last = sum(rec.losses[:5]) / 5, sum(rec.losses[-5:]) / 5
