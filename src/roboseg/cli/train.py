@@ -22,7 +22,6 @@ import numpy as np
 import torch
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
-from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import MissingMandatoryValue
 
@@ -77,15 +76,9 @@ def _fall_back_from_slow_bf16(cfg: DictConfig) -> None:
     asked = OmegaConf.select(cfg, "trainer.precision", default=None)
     if asked is None or not bool(cfg.get("bf16_fallback", True)):
         return
-    chosen = training_precision(
-        str(asked), str(OmegaConf.select(cfg, "trainer.accelerator", default="cpu")))
-    if chosen != str(asked):
-        if rank_zero_only.rank == 0:
-            log.warning(
-                "trainer.precision=%s: this CPU has no native bfloat16 (oneDNN reports none), "
-                "where bf16 autocast trains 15-20x slower than float32; training in %s "
-                "(bf16_fallback=false keeps %s)", asked, chosen, asked)
-        cfg.trainer.precision = chosen
+    cfg.trainer.precision = training_precision(
+        asked, str(OmegaConf.select(cfg, "trainer.accelerator", default="cpu")),
+        setting="trainer.precision", hint=f" (bf16_fallback=false keeps {asked})")
 
 
 @user_errors_exit

@@ -362,10 +362,7 @@ def _trainer(
 ) -> pl.Trainer:
     from roboseg.training import training_precision
 
-    precision = training_precision(cfg.precision, "cpu")
-    if precision != cfg.precision:
-        log.warning("self_training.precision=%s: this CPU has no native bfloat16, where it is "
-                    "15-20x slower than float32; fine-tuning in %s", cfg.precision, precision)
+    precision = training_precision(cfg.precision, "cpu", setting="self_training.precision")
     return pl.Trainer(
         callbacks=list(callbacks),
         accelerator="cpu",
