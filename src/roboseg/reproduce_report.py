@@ -592,7 +592,7 @@ def write_page(cfg: Any, layout: Any, plan: Sequence[Any], stages: Any) -> Path:
             "the probabilities averaged, as the draped test registrations below segment them "
             "(`register.draped_scales`):\n\n" + scaled.read_text()
         )
-    # steps: as trained / trainer.max_steps (fewer: trainer.max_time came first)
+    # steps: as trained / trainer.max_steps (fewer: fitted to or cut by trainer.max_time)
     add("\n" + md_table(
         ["model", "experiment", "overrides", "steps", "val IoU"],
         [[m.name, m.experiment, " ".join(f"`{o}`" for o in m.overrides) or "-",

@@ -217,6 +217,9 @@ class SegmentationModule(pl.LightningModule):
         )
         self.loss_fn = FocalDiceLoss(**self.hparams.loss)
         self.augment = build_augmentation(self.hparams.augment)
+        # steps of the learning-rate schedule: trainer.max_steps (set with the optimiser) unless
+        # a callback fits the schedule to the time budget (roboseg.time_budget)
+        self.schedule_steps: int | None = None
         self.train_iou = BinaryJaccardIndex(threshold=float(threshold))
         self.val_iou = BinaryJaccardIndex(threshold=float(threshold))
         self.test_iou = BinaryJaccardIndex(threshold=float(threshold))
@@ -328,10 +331,11 @@ class SegmentationModule(pl.LightningModule):
         optimizer = torch.optim.AdamW(
             self.net.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay
         )
-        total = self.trainer.max_steps if self._trainer is not None else -1
+        # a FitScheduleToTime callback may shorten it later (on_train_start comes after this)
+        self.schedule_steps = self.trainer.max_steps if self._trainer is not None else -1
         schedule, warmup = self.hparams.lr_schedule, self.hparams.warmup_steps
-        scheduler = torch.optim.lr_scheduler.LambdaLR(
-            optimizer, lambda step: lr_factor(step, warmup, total, schedule)
+        scheduler = torch.optim.lr_scheduler.LambdaLR(  # the horizon is read at every step
+            optimizer, lambda step: lr_factor(step, warmup, int(self.schedule_steps), schedule)
         )
         return {
             "optimizer": optimizer,

@@ -4,8 +4,8 @@
 last.ckpt]`` seeds everything, fits, validates the best checkpoint and writes
 ``RUN/checkpoints/best.ckpt`` and ``last.ckpt`` (the final state). The last two lines are
 ``steps=N/M`` (optimiser steps done / ``trainer.max_steps``: fewer when ``trainer.max_time`` came
-first, which is also logged as a warning) and ``val/iou=0.xxx``: the per-frame mean IoU of the
-best checkpoint over the validation frames
+first or the schedule was fitted to it, which is also logged as a warning) and
+``val/iou=0.xxx``: the per-frame mean IoU of the best checkpoint over the validation frames
 (draped ones by default, see ``data.val_phase``; all of them, whatever
 ``trainer.limit_val_batches``), on rank zero. ``-m model=unet_mit_b0,unet_resnet18`` runs a sweep.
 """
@@ -28,6 +28,7 @@ from omegaconf.errors import MissingMandatoryValue
 from roboseg.cli._main import user_errors_exit
 from roboseg.config import CONF_DIR
 from roboseg.errors import ModelFileError, RobosegError
+from roboseg.time_budget import FitScheduleToTime
 from roboseg.training import SegmentationModule, per_frame_iou, training_precision
 
 log = logging.getLogger("roboseg.train")
@@ -70,6 +71,14 @@ def _checkpoint_callback(trainer: pl.Trainer) -> pl.callbacks.ModelCheckpoint | 
     return None
 
 
+def _fitted(trainer: pl.Trainer) -> int | None:
+    """``trainer.max_steps`` as configured where :class:`FitScheduleToTime` shortened it."""
+    for cb in trainer.callbacks:
+        if isinstance(cb, FitScheduleToTime) and cb.current is not None and cb.configured:
+            return cb.configured.steps if cb.current.steps < cb.configured.steps else None
+    return None
+
+
 def _fall_back_from_slow_bf16(cfg: DictConfig) -> None:
     """``trainer.precision`` bf16 on a CPU without native bfloat16 becomes ``32-true`` (logged),
     unless ``bf16_fallback`` is false: there bf16 autocast trains 15-20x slower than float32."""
@@ -96,12 +105,17 @@ def run(cfg: DictConfig) -> float:
     if trainer.interrupted:
         raise RobosegError("training was interrupted; checkpoints so far are kept")
     steps, wanted = int(trainer.global_step), int(trainer.max_steps)
+    fitted = _fitted(trainer)
     if wanted > 0 and steps < wanted:
         # a slower machine meets trainer.max_time first: a different (less trained) model
         log.warning(
             "stopped at step %d of trainer.max_steps=%d (trainer.max_time=%s or max_epochs came "
             "first; the learning-rate schedule did not end): raise trainer.max_time for the "
             "full run", steps, wanted, OmegaConf.select(cfg, "trainer.max_time", default=None))
+    elif fitted is not None and steps < fitted:
+        log.warning("the schedule was fitted to trainer.max_time: %d of trainer.max_steps=%d "
+                    "steps (raise trainer.max_time for the full run)", steps, fitted)
+    wanted = fitted or wanted
     callback = _checkpoint_callback(trainer)
     best = ""
     if callback is not None and callback.dirpath:
