@@ -9,9 +9,8 @@ horizon (:attr:`roboseg.training.SegmentationModule.schedule_steps`), the augmen
 the validation interval (the same number of validations, the last at the final step). It never
 lengthens a run beyond ``trainer.max_steps``; ``trainer.max_time`` stays the hard limit.
 Measured in ``make train`` on an AVX2-only CPU (float32, ~0.55 s a step; 1800 steps do not fit
-its 10.5 min guard), draped / undraped validation and two-robot test IoU: seed 0 cut at step
-1174 0.609 / 0.658 / 0.537, fitted to 1032 steps 0.632 / 0.706 / 0.600; seed 1 cut at step 986
-0.629 / 0.701 / 0.513, fitted to 1086 steps 0.666 / 0.702 / 0.544 (README).
+its 10.5 min guard): fitted runs end annealed and validated at their last step, with draped
+validation IoU 0.54-0.67 against 0.61-0.63 cut, within the spread of runs (README).
 """
 
 from __future__ import annotations
