@@ -180,14 +180,11 @@ class FitScheduleToTime(pl.Callback):
         if not (schedule.steps < current.steps
                 or schedule.steps >= current.steps * (1 + self.lengthen_by)):
             return
-        message = ("at %.2f s a training step and %.1f s a validation, trainer.max_steps=%d would "
-                   "not end within trainer.max_time (%.0f s): the schedule (learning rate, "
-                   "augmentation ramp, validations) now ends at step %d")
-        if schedule == configured:
-            message = ("at %.2f s a training step and %.1f s a validation, trainer.max_steps=%d "
-                       "ends within trainer.max_time (%.0f s) again: the schedule ends at step %d")
-        log.log(logging.WARNING if self.current is None else logging.INFO, message, step_s, val_s,
-                configured.steps, budget, schedule.steps)
+        log.log(logging.WARNING if self.current is None else logging.INFO,
+                "at %.2f s a training step and %.1f s a validation, the schedule (learning rate, "
+                "augmentation ramp, validations) ends at step %d of trainer.max_steps=%d to end "
+                "within trainer.max_time (%.0f s)", step_s, val_s, schedule.steps,
+                configured.steps, budget)
         self.current = schedule
         self.fits.append((step, schedule))
         self._apply(trainer, pl_module, schedule)

@@ -71,12 +71,12 @@ def _checkpoint_callback(trainer: pl.Trainer) -> pl.callbacks.ModelCheckpoint | 
     return None
 
 
-def _fitted(trainer: pl.Trainer) -> int | None:
-    """``trainer.max_steps`` as configured where :class:`FitScheduleToTime` shortened it."""
+def _configured_steps(trainer: pl.Trainer) -> int:
+    """``trainer.max_steps`` as configured, before :class:`FitScheduleToTime` fitted it."""
     for cb in trainer.callbacks:
-        if isinstance(cb, FitScheduleToTime) and cb.current is not None and cb.configured:
-            return cb.configured.steps if cb.current.steps < cb.configured.steps else None
-    return None
+        if isinstance(cb, FitScheduleToTime) and cb.configured is not None:
+            return cb.configured.steps
+    return int(trainer.max_steps)
 
 
 def _fall_back_from_slow_bf16(cfg: DictConfig) -> None:
@@ -104,18 +104,18 @@ def run(cfg: DictConfig) -> float:
     trainer.fit(module, datamodule=data, ckpt_path=None if ckpt_path is None else str(ckpt_path))
     if trainer.interrupted:
         raise RobosegError("training was interrupted; checkpoints so far are kept")
-    steps, wanted = int(trainer.global_step), int(trainer.max_steps)
-    fitted = _fitted(trainer)
+    steps, wanted = int(trainer.global_step), int(trainer.max_steps)  # wanted: as fitted
+    configured = _configured_steps(trainer)
     if wanted > 0 and steps < wanted:
         # a slower machine meets trainer.max_time first: a different (less trained) model
         log.warning(
             "stopped at step %d of trainer.max_steps=%d (trainer.max_time=%s or max_epochs came "
             "first; the learning-rate schedule did not end): raise trainer.max_time for the "
             "full run", steps, wanted, OmegaConf.select(cfg, "trainer.max_time", default=None))
-    elif fitted is not None and steps < fitted:
+    elif steps < configured:
         log.warning("the schedule was fitted to trainer.max_time: %d of trainer.max_steps=%d "
-                    "steps (raise trainer.max_time for the full run)", steps, fitted)
-    wanted = fitted or wanted
+                    "steps (raise trainer.max_time for the full run)", steps, configured)
+    wanted = configured
     callback = _checkpoint_callback(trainer)
     best = ""
     if callback is not None and callback.dirpath:
